@@ -1,0 +1,9 @@
+"""sb3-pearl: PEARL and PEARL+ (prior-safe context-based meta-RL) for Stable-Baselines3."""
+
+from sb3_pearl.envs import register_envs
+
+register_envs()
+
+__version__ = "0.1.0"
+
+__all__ = ["__version__", "register_envs"]

@@ -1,0 +1,29 @@
+"""Task families (Gymnasium envs with the ``set_task`` hook), registered on ``import sb3_pearl``.
+
+Each family lives in its own module; :data:`FAMILIES` maps the registered id to its entry point
+and time limit. ``register_envs()`` is idempotent.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+
+from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, TaskFamily, check_task_env
+
+# id -> (entry point, registration kwargs)
+FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
+    "PointGoalMeta-v0": ("sb3_pearl.envs.point_goal:PointGoalMetaEnv", {"max_episode_steps": 20}),
+    "SafePointGoalMeta-v0": ("sb3_pearl.envs.point_goal:SafePointGoalMetaEnv", {"max_episode_steps": 30}),
+}
+
+
+def register_envs() -> None:
+    """Register every task family with Gymnasium (safe to call more than once)."""
+    for env_id, (entry_point, kwargs) in FAMILIES.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=entry_point, **kwargs)
+
+
+__all__ = ["FAMILIES", "MetaTaskEnv", "Task", "TaskFamily", "check_task_env", "register_envs"]
