@@ -1,0 +1,1 @@
+"""Code shared by the algorithms: buffers, context inference, evaluation, type aliases."""

@@ -1,0 +1,123 @@
+"""Per-task replay storage for meta-RL.
+
+:class:`TaskReplayBuffer` keeps one float32 ring buffer per task in arrays of shape
+``(n_tasks, capacity, dim)``, so that a batch for ``T`` tasks is a single fancy-indexing
+operation (no per-task Python loop). :class:`MetaReplayBuffer` bundles the two buffers PEARL
+needs: the RL buffer (all data of a task, sampled uniformly for the actor-critic losses) and
+the context buffer (the task's most recent collection, cleared when the task is sampled again,
+sampled for the encoder), as in the reference implementation.
+
+Arrays are allocated with ``np.zeros``, whose pages are only backed by memory once written, so a
+large per-task capacity costs what is actually stored.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+from sb3_pearl.common.type_aliases import MetaReplaySamples
+
+
+class TaskReplayBuffer:
+    """
+    One ring buffer per task.
+
+    :param n_tasks: number of tasks
+    :param capacity: transitions kept per task (the oldest are overwritten)
+    :param observation_space: flat Box observation space
+    :param action_space: Box (actions stored scaled to [-1, 1]) or Discrete (stored as an index)
+    """
+
+    def __init__(self, n_tasks: int, capacity: int, observation_space: spaces.Space, action_space: spaces.Space) -> None:
+        if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) != 1:
+            raise ValueError(f"TaskReplayBuffer needs a flat Box observation space, got {observation_space}")
+        if capacity < 1 or n_tasks < 1:
+            raise ValueError(f"n_tasks and capacity must be >= 1, got {n_tasks} and {capacity}")
+        self.n_tasks = n_tasks
+        self.capacity = capacity
+        self.obs_dim = int(observation_space.shape[0])
+        self.action_dim = 1 if isinstance(action_space, spaces.Discrete) else int(np.prod(action_space.shape))
+        self.observations = np.zeros((n_tasks, capacity, self.obs_dim), dtype=np.float32)
+        self.next_observations = np.zeros((n_tasks, capacity, self.obs_dim), dtype=np.float32)
+        self.actions = np.zeros((n_tasks, capacity, self.action_dim), dtype=np.float32)
+        self.rewards = np.zeros((n_tasks, capacity, 1), dtype=np.float32)
+        self.dones = np.zeros((n_tasks, capacity, 1), dtype=np.float32)
+        self.pos = np.zeros(n_tasks, dtype=np.int64)
+        self.size = np.zeros(n_tasks, dtype=np.int64)
+
+    def add(
+        self, task: int, obs: np.ndarray, action: np.ndarray, reward: float, next_obs: np.ndarray, terminated: bool
+    ) -> None:
+        """Store one transition of ``task`` (``terminated`` is True only for a true terminal state)."""
+        p = self.pos[task]
+        self.observations[task, p] = obs
+        self.actions[task, p] = action
+        self.rewards[task, p, 0] = reward
+        self.next_observations[task, p] = next_obs
+        self.dones[task, p, 0] = float(terminated)
+        self.pos[task] = (p + 1) % self.capacity
+        self.size[task] = min(self.size[task] + 1, self.capacity)
+
+    def clear(self, task: int) -> None:
+        """Forget every transition of ``task``."""
+        self.pos[task] = 0
+        self.size[task] = 0
+
+    def sample_indices(self, tasks: np.ndarray, batch_size: int) -> np.ndarray:
+        """Uniform row indices, shape ``(T, batch_size)``, for tasks that all hold data."""
+        sizes = self.size[tasks]
+        if np.any(sizes == 0):
+            raise ValueError(f"cannot sample tasks without data: {tasks[sizes == 0].tolist()}")
+        return (np.random.random_sample((len(tasks), batch_size)) * sizes[:, None]).astype(np.int64)
+
+    def sample(self, tasks: np.ndarray, batch_size: int, device: th.device | str = "cpu") -> MetaReplaySamples:
+        """
+        Sample ``batch_size`` transitions uniformly from each task in ``tasks``.
+
+        :param tasks: task indices, shape ``(T,)`` (repeats allowed)
+        :param batch_size: rows per task
+        :param device: torch device of the returned tensors
+        :return: tensors of leading shape ``(T, batch_size)``
+        """
+        tasks = np.asarray(tasks, dtype=np.int64)
+        rows = self.sample_indices(tasks, batch_size)
+        t = tasks[:, None]  # (T, 1) broadcast against rows (T, B)
+        arrays = (self.observations, self.actions, self.rewards, self.next_observations, self.dones)
+        return MetaReplaySamples(*(th.as_tensor(a[t, rows], device=device) for a in arrays))
+
+
+class MetaReplayBuffer:
+    """
+    The RL buffer and the context buffer of every training task, saved together by
+    ``save_replay_buffer``.
+
+    :param n_tasks: number of training tasks
+    :param buffer_size: RL transitions kept per task
+    :param context_size: context transitions kept per task (the latest collection)
+    :param observation_space: flat Box observation space
+    :param action_space: Box or Discrete action space
+    """
+
+    def __init__(
+        self,
+        n_tasks: int,
+        buffer_size: int,
+        context_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+    ) -> None:
+        self.rl = TaskReplayBuffer(n_tasks, buffer_size, observation_space, action_space)
+        self.context = TaskReplayBuffer(n_tasks, context_size, observation_space, action_space)
+
+    @property
+    def n_tasks(self) -> int:
+        return self.rl.n_tasks
+
+    def tasks_with_data(self) -> np.ndarray:
+        """Indices of the tasks whose RL and context buffers both hold data."""
+        return np.flatnonzero((self.rl.size > 0) & (self.context.size > 0))
+
+    def total_transitions(self) -> int:
+        return int(self.rl.size.sum())

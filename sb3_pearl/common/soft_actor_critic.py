@@ -1,0 +1,85 @@
+"""Soft actor-critic math shared by every algorithm of the project, for Box and Discrete actions.
+
+Networks take an input ``x`` (for PEARL: the observation concatenated with z). Box actions use a
+tanh-Gaussian actor and critics on ``cat(x, a)``; Discrete actions use a categorical actor and
+critics that output one Q value per action, so that the soft state value is an exact expectation
+over actions (soft discrete SAC, Christodoulou 2019):
+
+    Box:       V(s) = Q(s, a~pi) - alpha * log pi(a|s)
+    Discrete:  V(s) = sum_a pi(a|s) * (Q(s, a) - alpha * log pi(a|s))
+
+The actor loss is ``-mean(V)`` computed with frozen critic parameters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch as th
+from torch import nn
+
+CriticFn = Callable[[th.Tensor], th.Tensor]  # x -> (n_critics, N, out)
+
+
+class PolicyEval(NamedTuple):
+    """The actor evaluated on a batch of N inputs."""
+
+    actions: th.Tensor | None  # Box: reparameterised actions (N, A); Discrete: None
+    probs: th.Tensor | None  # Discrete: (N, n_actions); Box: None
+    log_prob: th.Tensor  # Box: (N, 1); Discrete: (N, n_actions)
+
+    def split(self, n: int) -> tuple[PolicyEval, PolicyEval]:
+        """Split the rows into the first ``n`` and the rest."""
+
+        def cut(t: th.Tensor | None) -> tuple[th.Tensor | None, th.Tensor | None]:
+            return (None, None) if t is None else (t[:n], t[n:])
+
+        (a1, a2), (p1, p2), (l1, l2) = cut(self.actions), cut(self.probs), cut(self.log_prob)
+        assert l1 is not None and l2 is not None
+        return PolicyEval(a1, p1, l1), PolicyEval(a2, p2, l2)
+
+
+def evaluate_policy(actor: nn.Module, x: th.Tensor) -> PolicyEval:
+    """Sample (Box) or enumerate (Discrete) the actor's actions on inputs ``x`` (N, in_dim)."""
+    if hasattr(actor, "probs"):
+        probs, log_probs = actor.probs(x)
+        return PolicyEval(None, probs, log_probs)
+    actions, log_prob = actor.action_log_prob(x)
+    return PolicyEval(actions, None, log_prob.reshape(-1, 1))
+
+
+def q_of_policy(critic_fn: CriticFn, x: th.Tensor, pe: PolicyEval) -> th.Tensor:
+    """Min over critics of Q at the policy's actions: Box (N, 1), Discrete (N, n_actions)."""
+    q_input = x if pe.actions is None else th.cat([x, pe.actions], dim=-1)
+    return critic_fn(q_input).min(dim=0).values
+
+
+def q_of_actions(critic_fn: CriticFn, x: th.Tensor, actions: th.Tensor, discrete: bool) -> th.Tensor:
+    """Q of every critic at stored actions (Box: (N, A) scaled; Discrete: (N, 1) indices) -> (n_critics, N, 1)."""
+    if discrete:
+        q_all = critic_fn(x)  # (n_critics, N, n_actions)
+        index = actions.long().unsqueeze(0).expand(q_all.shape[0], -1, -1)  # (n_critics, N, 1)
+        return q_all.gather(-1, index)
+    return critic_fn(th.cat([x, actions], dim=-1))
+
+
+def soft_value(q: th.Tensor, pe: PolicyEval, ent_coef: th.Tensor) -> th.Tensor:
+    """Soft state value (N, 1) from the policy's Q values (:func:`q_of_policy`)."""
+    if pe.probs is None:
+        return q - ent_coef * pe.log_prob
+    return (pe.probs * (q - ent_coef * pe.log_prob)).sum(dim=-1, keepdim=True)
+
+
+def entropy_log_prob(pe: PolicyEval) -> th.Tensor:
+    """E[log pi] per row (N, 1): the sampled log-probability (Box) or its exact expectation (Discrete)."""
+    if pe.probs is None:
+        return pe.log_prob
+    return (pe.probs * pe.log_prob).sum(dim=-1, keepdim=True)
+
+
+def critic_regression_loss(q: th.Tensor, target: th.Tensor) -> th.Tensor:
+    """0.5 * sum over critics of the mean squared Bellman error; ``q`` (n_critics, N, 1), ``target`` (N, 1)."""
+    if q.dim() != 3 or target.shape != q.shape[1:]:
+        raise ValueError(f"expected q (n_critics, N, 1) and target (N, 1), got {tuple(q.shape)} and {tuple(target.shape)}")
+    return 0.5 * (q - target.unsqueeze(0)).pow(2).mean(dim=(1, 2)).sum()

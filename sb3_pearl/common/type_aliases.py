@@ -1,0 +1,31 @@
+"""NamedTuples exchanged between the buffers, the losses and the logger."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch as th
+
+
+class MetaReplaySamples(NamedTuple):
+    """A replay batch for ``T`` tasks with ``B`` rows each (every tensor has leading shape ``(T, B)``)."""
+
+    observations: th.Tensor  # (T, B, obs_dim)
+    actions: th.Tensor  # (T, B, act_dim) scaled Box actions in [-1, 1], or (T, B, 1) Discrete indices
+    rewards: th.Tensor  # (T, B, 1)
+    next_observations: th.Tensor  # (T, B, obs_dim)
+    dones: th.Tensor  # (T, B, 1) 1.0 on termination only (a time-limit truncation stores 0.0)
+
+
+class PEARLLosses(NamedTuple):
+    """The losses of one PEARL/PEARL+ gradient step (Algorithm 1), each a scalar tensor."""
+
+    critic_loss: th.Tensor  # L_critic(b, z): reaches the critic and the encoder
+    kl_loss: th.Tensor  # sum over tasks of KL(q(z|c) || N(0, I)): reaches the encoder only
+    prior_critic_loss: th.Tensor  # L~_critic(b, z0): reaches the prior critic only (0 for PEARL / shared mode)
+    actor_loss: th.Tensor  # L_actor(b, z.detach()): reaches the actor only
+    prior_actor_loss: th.Tensor  # L_actor(b, z0): reaches the actor only
+    ent_coef_loss: th.Tensor  # reaches log_ent_coef only (0 with a fixed ent_coef)
+    ent_coef: th.Tensor  # the entropy coefficient used in this step
+    z_mean: th.Tensor  # (T, latent_dim) posterior means, for logging
+    z_var: th.Tensor  # (T, latent_dim) posterior variances, for logging

@@ -1,0 +1,708 @@
+"""PEARL (Rakelly et al. 2019) and PEARL+ (the paper: PEARL plus a prior-regularisation term).
+
+``train()`` follows Algorithm 1 of the paper, vectorised over the ``meta_batch`` tasks: every
+network runs once per gradient step on the rows of all tasks, shaped ``(T * B, ...)``.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import pathlib
+from collections import deque
+from typing import Any, ClassVar, NamedTuple, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import load_from_pkl
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_pearl.common.buffers import MetaReplayBuffer
+from sb3_pearl.common.context import kl_to_standard_normal
+from sb3_pearl.common.soft_actor_critic import (
+    critic_regression_loss,
+    entropy_log_prob,
+    evaluate_policy,
+    q_of_actions,
+    q_of_policy,
+    soft_value,
+)
+from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
+from sb3_pearl.envs.task_protocol import TASK_METHODS, Task
+from sb3_pearl.pearl.policies import PEARLPolicy
+
+SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
+
+
+class Segment(NamedTuple):
+    """A stretch of data collection on one training task (one line of Algorithm 1's inner loop)."""
+
+    task: int  # index into train_tasks
+    n_steps: int
+    z_source: str  # "prior": z ~ N(0, I); "posterior": z ~ q(z | context buffer of the task)
+    add_to_context: bool  # also store the data in the task's context buffer
+    clear_context: bool  # clear the task's context buffer before collecting
+
+
+class PEARLPlus(OffPolicyAlgorithm):
+    """
+    PEARL+ : PEARL with a prior-regularisation term (Algorithm 1 of the paper).
+
+    The actor minimises ``L_actor(b, z.detach()) + prior_coef * L_actor(b, z0)`` with
+    ``z ~ q(z | c)`` and ``z0 ~ N(0, I)`` (one z0 per task, held across the task's rows). The
+    prior term is scored by an extra prior critic Q~(s, a, z0) with its own soft Bellman loss
+    (``prior_critic="separate"``) or, for the ablation PEARL+ (w/o), by the critic Q(s, a, z0)
+    (``prior_critic="shared"``). The encoder is trained by the critic loss and the KL only.
+
+    All four losses touch disjoint parameter sets, so one backward pass serves every optimizer;
+    the actor terms see the critics through frozen parameters (gradients reach the actor only)
+    and, as in the reference implementation, the critics as they were before this step's update.
+
+    Data collection (``learn``): iteration 0 collects ``num_initial_steps`` per training task with
+    z from the prior; every later iteration picks ``num_tasks_sample`` training tasks and, for
+    each, clears its context buffer and collects ``num_steps_prior`` steps with z from the prior,
+    ``num_steps_posterior`` steps with z from the posterior (both also stored as context) and
+    ``num_extra_rl_steps_posterior`` posterior steps for the RL buffer only; then
+    ``num_train_steps_per_itr`` gradient steps follow. z is drawn once per trajectory. If the
+    ``learn`` budget ends inside an iteration, the gradient steps are scaled by the share of the
+    iteration's planned steps that was collected.
+
+    :param policy: ``"MlpPolicy"`` or a :class:`PEARLPolicy` subclass
+    :param env: an env id or env following the task protocol (``sample_tasks``, ``set_task``,
+        ``get_task``); with ``n_envs > 1`` every env runs its own task
+    :param learning_rate: learning rate of every optimizer (constant or schedule)
+    :param buffer_size: RL transitions kept per training task
+    :param batch_size: RL transitions per task in a gradient step (reference: 256)
+    :param tau: Polyak coefficient of the target critics
+    :param gamma: discount factor
+    :param prior_coef: weight ``alpha`` of the prior term (paper default 0.1); 0 gives PEARL's actor
+    :param prior_critic: ``"separate"`` (PEARL+) or ``"shared"`` (ablation PEARL+ (w/o))
+    :param prior_critic_arch: hidden sizes of the prior critic (paper: [300, 300, 300]; ablation [100, 100, 100])
+    :param latent_dim: size of z
+    :param kl_weight: weight ``beta`` of KL(q(z|c) || N(0, I)), summed over the meta-batch tasks
+    :param use_next_obs_in_context: context transitions are (s, a, r, s') instead of (s, a, r)
+    :param encoder_arch: hidden sizes of the context encoder
+    :param ent_coef: ``"auto"`` / ``"auto_<init>"`` (learned, SB3 default) or a float (the reference
+        uses 1.0 with ``reward_scale=5``)
+    :param target_entropy: target of the learned entropy coefficient; ``"auto"`` is ``-dim(A)`` for
+        Box and ``0.6 * log(n_actions)`` for Discrete
+    :param reward_scale: rewards are multiplied by this in the critic targets (not in the context)
+    :param n_train_tasks: training tasks drawn from ``env.sample_tasks`` with the model seed
+    :param n_test_tasks: held-out test tasks drawn in the same call
+    :param train_tasks: explicit training tasks (overrides the draw)
+    :param test_tasks: explicit test tasks (overrides the draw)
+    :param meta_batch: tasks per gradient step
+    :param embedding_batch_size: context transitions per task in a gradient step
+    :param num_initial_steps: prior steps per training task in iteration 0
+    :param num_tasks_sample: tasks visited per iteration
+    :param num_steps_prior: prior-z steps per visited task
+    :param num_steps_posterior: posterior-z steps per visited task (also stored as context)
+    :param num_extra_rl_steps_posterior: posterior-z steps per visited task for the RL buffer only
+    :param num_train_steps_per_itr: gradient steps per iteration
+    :param policy_kwargs: extra policy arguments (``net_arch``, ``activation_fn``, ``n_critics``, ...)
+    :param stats_window_size: episodes averaged in the rollout logs
+    :param tensorboard_log: TensorBoard log folder
+    :param verbose: 0 silent, 1 info, 2 debug
+    :param seed: seed of the networks, the task draw and the sampling
+    :param device: torch device
+    :param _init_setup_model: build the networks at construction
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": PEARLPolicy}
+    policy: PEARLPolicy
+    replay_buffer: MetaReplayBuffer  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        policy: str | type[PEARLPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 100_000,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        prior_coef: float = 0.1,
+        prior_critic: str = "separate",
+        prior_critic_arch: list[int] | None = None,
+        latent_dim: int = 5,
+        kl_weight: float = 0.1,
+        use_next_obs_in_context: bool = False,
+        encoder_arch: list[int] | None = None,
+        ent_coef: str | float = "auto",
+        target_entropy: str | float = "auto",
+        reward_scale: float = 1.0,
+        n_train_tasks: int = 100,
+        n_test_tasks: int = 30,
+        train_tasks: list[Task] | None = None,
+        test_tasks: list[Task] | None = None,
+        meta_batch: int = 16,
+        embedding_batch_size: int = 100,
+        num_initial_steps: int = 2000,
+        num_tasks_sample: int = 5,
+        num_steps_prior: int = 400,
+        num_steps_posterior: int = 0,
+        num_extra_rl_steps_posterior: int = 600,
+        num_train_steps_per_itr: int = 2000,
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        if prior_coef < 0:
+            raise ValueError(f"prior_coef must be >= 0 (the paper's alpha > 0; 0 gives PEARL), got {prior_coef}")
+        if prior_critic not in self._prior_critic_modes():
+            raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {self._prior_critic_modes()}")
+        for name, value in (
+            ("n_train_tasks", n_train_tasks),
+            ("meta_batch", meta_batch),
+            ("batch_size", batch_size),
+            ("embedding_batch_size", embedding_batch_size),
+        ):
+            if value < 1:
+                raise ValueError(f"{name} must be >= 1, got {value}")
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=0,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            gradient_steps=num_train_steps_per_itr,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            support_multi_env=True,
+            sde_support=False,
+            supported_action_spaces=None,  # checked in _setup_model with a ValueError
+        )
+        self.prior_coef = prior_coef
+        self.prior_critic_mode = prior_critic
+        self.kl_weight = kl_weight
+        self.ent_coef = ent_coef
+        self.target_entropy = target_entropy
+        self.reward_scale = reward_scale
+        self.n_train_tasks = n_train_tasks
+        self.n_test_tasks = n_test_tasks
+        self.train_tasks: list[Task] = list(train_tasks) if train_tasks is not None else []
+        self.test_tasks: list[Task] = list(test_tasks) if test_tasks is not None else []
+        self.meta_batch = meta_batch
+        self.embedding_batch_size = embedding_batch_size
+        self.num_initial_steps = num_initial_steps
+        self.num_tasks_sample = num_tasks_sample
+        self.num_steps_prior = num_steps_prior
+        self.num_steps_posterior = num_steps_posterior
+        self.num_extra_rl_steps_posterior = num_extra_rl_steps_posterior
+        self.num_train_steps_per_itr = num_train_steps_per_itr
+        self.n_iterations = 0
+        self.log_ent_coef: th.Tensor | None = None
+        self.ent_coef_optimizer: th.optim.Adam | None = None
+        self.policy_kwargs.update(
+            latent_dim=latent_dim,
+            use_next_obs_in_context=use_next_obs_in_context,
+            prior_critic=prior_critic,
+        )
+        if encoder_arch is not None:
+            self.policy_kwargs["encoder_arch"] = encoder_arch
+        if prior_critic_arch is not None:
+            self.policy_kwargs["prior_critic_arch"] = prior_critic_arch
+        self._adapt_context: list[tuple[np.ndarray, np.ndarray, float, np.ndarray]] = []
+        if _init_setup_model:
+            self._setup_model()
+
+    @staticmethod
+    def _prior_critic_modes() -> tuple[str, ...]:
+        return ("separate", "shared")
+
+    # ------------------------------------------------------------------------------------------
+    # Set-up
+    # ------------------------------------------------------------------------------------------
+    def _setup_model(self) -> None:
+        self._setup_lr_schedule()
+        self.set_random_seed(self.seed)
+        if self.env is not None:
+            self._check_env(self.env)
+            if not self.train_tasks:
+                self._draw_tasks(self.env)
+        context_size = max(self.num_initial_steps, self.num_steps_prior + self.num_steps_posterior, 1)
+        self.replay_buffer = MetaReplayBuffer(
+            len(self.train_tasks) or self.n_train_tasks,
+            self.buffer_size,
+            context_size,
+            self.observation_space,
+            self.action_space,
+        )
+        self.policy = self.policy_class(  # type: ignore[assignment]
+            self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
+        )
+        self.policy = self.policy.to(self.device)
+        self._create_aliases()
+        self._setup_entropy()
+        self._convert_train_freq()
+        self.reset_adaptation()
+
+    def _create_aliases(self) -> None:
+        self.encoder = self.policy.encoder
+        self.actor = self.policy.actor
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+        self.prior_critic = self.policy.prior_critic
+        self.prior_critic_target = self.policy.prior_critic_target
+
+    def _check_env(self, env: VecEnv) -> None:
+        """Clear errors for envs the algorithm cannot use."""
+        if not isinstance(self.action_space, (spaces.Box, spaces.Discrete)):
+            raise ValueError(
+                f"{type(self).__name__} supports Box and Discrete action spaces, got {type(self.action_space).__name__}"
+            )
+        if not isinstance(self.observation_space, spaces.Box) or len(self.observation_space.shape) != 1:
+            raise ValueError(f"{type(self).__name__} needs a flat Box observation space, got {self.observation_space}")
+        missing = [name for name in TASK_METHODS if not env.has_attr(name)]
+        if missing:
+            raise ValueError(
+                f"the env does not implement the task protocol (missing {missing}): meta-RL needs an env with "
+                "sample_tasks(n, seed), set_task(task) and get_task(), e.g. gym.make('SafePointGoalMeta-v0'); "
+                "see sb3_pearl.envs.task_protocol.MetaTaskEnv"
+            )
+        if self._vec_normalize_env is not None:
+            raise ValueError("VecNormalize is not supported: per-env task switches reset envs below the VecEnv wrappers")
+
+    def _draw_tasks(self, env: VecEnv) -> None:
+        tasks = env.env_method("sample_tasks", self.n_train_tasks + self.n_test_tasks, self.seed, indices=[0])[0]
+        self.train_tasks = list(tasks[: self.n_train_tasks])
+        if not self.test_tasks:
+            self.test_tasks = list(tasks[self.n_train_tasks :])
+
+    def _setup_entropy(self) -> None:
+        if self.target_entropy == "auto":
+            if isinstance(self.action_space, spaces.Discrete):
+                self.target_entropy = 0.6 * math.log(int(self.action_space.n))
+            else:
+                self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+        self.target_entropy = float(self.target_entropy)
+        if isinstance(self.ent_coef, str):
+            if not self.ent_coef.startswith("auto"):
+                raise ValueError(f"ent_coef must be a float, 'auto' or 'auto_<init>', got {self.ent_coef!r}")
+            init_value = float(self.ent_coef.split("_")[1]) if "_" in self.ent_coef else 1.0
+            if init_value <= 0.0:
+                raise ValueError(f"the initial entropy coefficient must be > 0, got {init_value}")
+            self.log_ent_coef = th.log(th.ones(1, device=self.device) * init_value).requires_grad_(True)
+            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
+        else:
+            self.ent_coef_tensor = th.tensor(float(self.ent_coef), device=self.device)
+
+    def _current_ent_coef(self) -> th.Tensor:
+        if self.log_ent_coef is not None:
+            return self.log_ent_coef.detach().exp()
+        return self.ent_coef_tensor
+
+    @property
+    def latent_dim(self) -> int:
+        return self.policy.latent_dim
+
+    # ------------------------------------------------------------------------------------------
+    # Algorithm 1: the losses of one gradient step
+    # ------------------------------------------------------------------------------------------
+    def _compute_losses(self, replay: MetaReplaySamples, context: th.Tensor, z0: th.Tensor) -> PEARLLosses:
+        """
+        Losses of one gradient step for T tasks.
+
+        :param replay: RL batch, tensors of leading shape (T, B)
+        :param context: context transitions (T, N, context_dim)
+        :param z0: prior latents (T, latent_dim), one per task
+        :return: the losses; summing them and calling backward gives every network its own gradient
+        """
+        n_tasks, batch = replay.rewards.shape[:2]
+        rows = n_tasks * batch
+        discrete = self.policy.discrete
+        obs = replay.observations.reshape(rows, -1)
+        next_obs = replay.next_observations.reshape(rows, -1)
+        actions = replay.actions.reshape(rows, -1)
+        rewards = self.reward_scale * replay.rewards.reshape(rows, 1)
+        not_done = 1.0 - replay.dones.reshape(rows, 1)
+        ent_coef = self._current_ent_coef()
+
+        # Task inference: q(z | c) per task, one z per task held across its rows.
+        z_mean, z_var = self.encoder.posterior(context)  # (T, L) each
+        z = z_mean + z_var.sqrt() * th.randn_like(z_mean)  # reparameterised sample, (T, L)
+        kl_loss = kl_to_standard_normal(z_mean, z_var).sum()  # summed over tasks, as the reference
+        z_rows = z.repeat_interleave(batch, dim=0)  # (T*B, L), carries encoder gradients
+        z0_rows = z0.repeat_interleave(batch, dim=0)  # (T*B, L)
+        x_post = th.cat([obs, z_rows.detach()], dim=-1)  # actor input with the detached posterior z
+        x_prior = th.cat([obs, z0_rows], dim=-1)
+        use_prior_actor = self.prior_coef > 0
+
+        # Actor on the posterior rows and, for PEARL+, the prior rows: one forward.
+        pe_all = evaluate_policy(self.actor, th.cat([x_post, x_prior]) if use_prior_actor else x_post)
+        pe_post, pe_prior = pe_all.split(rows)
+
+        # Soft Bellman targets with z detached (posterior) and z0 (prior critic): one actor forward.
+        with th.no_grad():
+            x_next = th.cat([next_obs, z_rows.detach()], dim=-1)
+            x0_next = th.cat([next_obs, z0_rows], dim=-1)
+            next_pe_all = evaluate_policy(self.actor, th.cat([x_next, x0_next]) if self.prior_critic else x_next)
+            next_pe, next_pe0 = next_pe_all.split(rows)
+            v_next = soft_value(q_of_policy(self.critic_target, x_next, next_pe), next_pe, ent_coef)
+            target = rewards + not_done * self.gamma * v_next  # (T*B, 1)
+
+        # Critic Q(s, a, z): the only loss (with the KL) that reaches the encoder.
+        x_critic = th.cat([obs, z_rows], dim=-1)
+        critic_loss = critic_regression_loss(q_of_actions(self.critic, x_critic, actions, discrete), target)
+
+        # Prior critic Q~(s, a, z0): its own soft Bellman loss under z0.
+        prior_critic_loss = th.zeros((), device=self.device)
+        if self.prior_critic is not None:
+            assert self.prior_critic_target is not None
+            with th.no_grad():
+                v0_next = soft_value(q_of_policy(self.prior_critic_target, x0_next, next_pe0), next_pe0, ent_coef)
+                target0 = rewards + not_done * self.gamma * v0_next
+            prior_critic_loss = critic_regression_loss(q_of_actions(self.prior_critic, x_prior, actions, discrete), target0)
+
+        # Actor: L_actor(b, z.detach()) and L_actor(b, z0), critics frozen.
+        actor_loss = -soft_value(q_of_policy(self.critic.forward_frozen, x_post, pe_post), pe_post, ent_coef).mean()
+        prior_actor_loss = th.zeros((), device=self.device)
+        if use_prior_actor:
+            prior_q = self.prior_critic if self.prior_critic is not None else self.critic  # "shared": Q(s, a, z0)
+            prior_actor_loss = -soft_value(q_of_policy(prior_q.forward_frozen, x_prior, pe_prior), pe_prior, ent_coef).mean()
+
+        ent_coef_loss = th.zeros((), device=self.device)
+        if self.log_ent_coef is not None:
+            assert isinstance(self.target_entropy, float)
+            ent_coef_loss = -(self.log_ent_coef * (entropy_log_prob(pe_post) + self.target_entropy).detach()).mean()
+
+        return PEARLLosses(
+            critic_loss=critic_loss,
+            kl_loss=kl_loss,
+            prior_critic_loss=prior_critic_loss,
+            actor_loss=actor_loss,
+            prior_actor_loss=prior_actor_loss,
+            ent_coef_loss=ent_coef_loss,
+            ent_coef=ent_coef,
+            z_mean=z_mean.detach(),
+            z_var=z_var.detach(),
+        )
+
+    def _total_loss(self, losses: PEARLLosses) -> th.Tensor:
+        return (
+            losses.critic_loss
+            + self.kl_weight * losses.kl_loss
+            + losses.prior_critic_loss
+            + losses.actor_loss
+            + self.prior_coef * losses.prior_actor_loss
+            + losses.ent_coef_loss
+        )
+
+    def _sample_meta_batch(self) -> tuple[MetaReplaySamples, th.Tensor, th.Tensor]:
+        """RL batch, context and z0 for ``meta_batch`` training tasks that hold data."""
+        candidates = self.replay_buffer.tasks_with_data()
+        if len(candidates) == 0:
+            raise RuntimeError("no training task holds data yet: collect before training")
+        tasks = np.random.choice(candidates, size=self.meta_batch, replace=len(candidates) < self.meta_batch)
+        replay = self.replay_buffer.rl.sample(tasks, self.batch_size, self.device)
+        ctx = self.replay_buffer.context.sample(tasks, self.embedding_batch_size, self.device)
+        context = self.policy.make_context(ctx.observations, ctx.actions, ctx.rewards, ctx.next_observations)
+        z0 = th.randn(len(tasks), self.latent_dim, device=self.device)  # one prior z per task
+        return replay, context, z0
+
+    def train(self, gradient_steps: int, batch_size: int = 256) -> None:
+        """``gradient_steps`` steps of Algorithm 1's inner loop, each over ``meta_batch`` tasks."""
+        self.policy.set_training_mode(True)
+        optimizers = self.policy.optimizers()
+        if self.ent_coef_optimizer is not None:
+            optimizers = [*optimizers, self.ent_coef_optimizer]
+        self._update_learning_rate(optimizers)
+        logs: dict[str, list[float]] = {}
+        for _ in range(gradient_steps):
+            replay, context, z0 = self._sample_meta_batch()
+            losses = self._compute_losses(replay, context, z0)
+            for optimizer in optimizers:
+                optimizer.zero_grad(set_to_none=True)
+            self._total_loss(losses).backward()
+            for optimizer in optimizers:
+                optimizer.step()
+            polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+            if self.prior_critic is not None and self.prior_critic_target is not None:
+                polyak_update(self.prior_critic.parameters(), self.prior_critic_target.parameters(), self.tau)
+            for key, value in (
+                ("critic_loss", losses.critic_loss),
+                ("kl", losses.kl_loss),
+                ("prior_critic_loss", losses.prior_critic_loss),
+                ("actor_loss", losses.actor_loss),
+                ("prior_actor_loss", losses.prior_actor_loss),
+                ("ent_coef", losses.ent_coef),
+                ("ent_coef_loss", losses.ent_coef_loss),
+                ("z_mean_abs", losses.z_mean.abs().mean()),
+                ("z_var", losses.z_var.mean()),
+            ):
+                logs.setdefault(key, []).append(float(value.item()))
+        self._n_updates += gradient_steps
+        self.policy.set_training_mode(False)
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        for key, values in logs.items():
+            self.logger.record(f"train/{key}", float(np.mean(values)))
+
+    # ------------------------------------------------------------------------------------------
+    # Data collection and the meta-training loop
+    # ------------------------------------------------------------------------------------------
+    def _plan_iteration(self) -> list[list[Segment]]:
+        """The segments of the next iteration, one program (list of segments) per visited task."""
+        without_data = np.flatnonzero(self.replay_buffer.rl.size == 0)
+        if len(without_data) > 0:  # iteration 0 (or an interrupted one): initial prior data
+            return [[Segment(int(t), self.num_initial_steps, "prior", True, True)] for t in without_data]
+        programs = []
+        for task in np.random.randint(len(self.train_tasks), size=self.num_tasks_sample):
+            program = [
+                Segment(int(task), self.num_steps_prior, "prior", True, True),
+                Segment(int(task), self.num_steps_posterior, "posterior", True, False),
+                Segment(int(task), self.num_extra_rl_steps_posterior, "posterior", False, False),
+            ]
+            if self.num_steps_prior == 0:  # the context buffer is still cleared when the task is visited
+                program.insert(0, Segment(int(task), 0, "prior", False, True))
+            programs.append(program)
+        return programs
+
+    def _draw_z(self, segment: Segment) -> th.Tensor:
+        """z for a new trajectory: from the prior, or from the posterior of the task's context buffer."""
+        if segment.z_source == "posterior" and self.replay_buffer.context.size[segment.task] > 0:
+            ctx = self.replay_buffer.context.sample(np.array([segment.task]), self.embedding_batch_size, self.device)
+            with th.no_grad():
+                context = self.policy.make_context(ctx.observations, ctx.actions, ctx.rewards, ctx.next_observations)
+                mean, var = self.encoder.posterior(context)
+            return (mean + var.sqrt() * th.randn_like(mean))[0]
+        return th.randn(self.latent_dim, device=self.device)
+
+    def _start_segment(self, env: VecEnv, slot: int, segment: Segment, obs: np.ndarray) -> None:
+        """Switch env ``slot`` to the segment's task and reset it explicitly (no auto-reset leak)."""
+        env.env_method("set_task", self.train_tasks[segment.task], indices=[slot])
+        obs[slot] = env.env_method("reset", indices=[slot])[0][0]
+
+    def _collect_iteration(self, env: VecEnv, callback: BaseCallback, programs: list[list[Segment]]) -> tuple[int, int, bool]:
+        """
+        Run the programs on the envs, each env one task at a time.
+
+        :return: steps collected, steps planned, whether training should go on
+        """
+        planned = sum(seg.n_steps for program in programs for seg in program)
+        queue = deque(deque(program) for program in programs)
+        n_envs = env.num_envs
+        # Each env runs one program (the segments of one task visit, in order) at a time.
+        running: list[deque[Segment]] = [deque() for _ in range(n_envs)]
+        segments: list[Segment | None] = [None] * n_envs
+        remaining = np.zeros(n_envs, dtype=np.int64)
+        z = th.zeros(n_envs, self.latent_dim, device=self.device)
+        obs = np.array(self._last_obs, dtype=np.float32)  # type: ignore[arg-type]
+        collected = 0
+        callback.on_rollout_start()
+        while True:
+            for slot in range(n_envs):
+                while remaining[slot] == 0 and (running[slot] or queue):
+                    if not running[slot]:
+                        running[slot] = queue.popleft()
+                    segment = running[slot].popleft()
+                    if segment.clear_context:
+                        self.replay_buffer.context.clear(segment.task)
+                    if segment.n_steps > 0:
+                        self._start_segment(env, slot, segment, obs)
+                        segments[slot] = segment
+                        remaining[slot] = segment.n_steps
+                        z[slot] = self._draw_z(segment)
+            active = np.flatnonzero(remaining > 0)
+            if len(active) == 0:
+                break
+            if self.num_timesteps >= self._total_timesteps:
+                break
+
+            with th.no_grad():
+                actions = self.policy.act(th.as_tensor(obs, device=self.device), z).cpu().numpy()
+            env_actions = actions if self.policy.discrete else self.policy.unscale_action(actions)
+            new_obs, rewards, dones, infos = env.step(env_actions)
+
+            for slot in active:
+                segment = segments[slot]
+                assert segment is not None
+                next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]
+                terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
+                stored_action = actions[slot].reshape(-1)
+                self.replay_buffer.rl.add(segment.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
+                if segment.add_to_context:
+                    self.replay_buffer.context.add(segment.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
+                remaining[slot] -= 1
+                if dones[slot]:
+                    self._episode_num += 1
+                    if remaining[slot] > 0:
+                        z[slot] = self._draw_z(segment)  # z is drawn once per trajectory
+            collected += len(active)
+            self.num_timesteps += len(active)
+            obs = np.array(new_obs, dtype=np.float32)
+            self._update_info_buffer([infos[i] for i in active], dones[active])
+            callback.update_locals(locals())
+            if not callback.on_step():
+                callback.on_rollout_end()
+                return collected, planned, False
+        self._last_obs = obs
+        callback.on_rollout_end()
+        return collected, planned, True
+
+    def learn(
+        self: SelfPEARLPlus,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str = "PEARLPlus",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfPEARLPlus:
+        """
+        Meta-train for ``total_timesteps`` env steps (Algorithm 1).
+
+        :param total_timesteps: env steps to collect
+        :param callback: SB3 callback(s), called once per env step
+        :param log_interval: dump the logs every ``log_interval`` iterations
+        :param tb_log_name: TensorBoard run name
+        :param reset_num_timesteps: restart the step counter
+        :param progress_bar: show a progress bar
+        """
+        total_timesteps, callback = self._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
+        callback.on_training_start(locals(), globals())
+        assert self.env is not None
+        while self.num_timesteps < total_timesteps:
+            collected, planned, continue_training = self._collect_iteration(self.env, callback, self._plan_iteration())
+            if not continue_training:
+                break
+            if collected > 0:
+                gradient_steps = math.ceil(self.num_train_steps_per_itr * collected / max(planned, 1))
+                self.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
+            self.n_iterations += 1
+            self.logger.record("time/iterations", self.n_iterations)
+            if log_interval and self.n_iterations % log_interval == 0:
+                self.dump_logs()
+        callback.on_training_end()
+        return self
+
+    # ------------------------------------------------------------------------------------------
+    # Adaptation API (shared by every algorithm of the project; SB3's predict never sees rewards)
+    # ------------------------------------------------------------------------------------------
+    def reset_adaptation(self) -> None:
+        """Forget the observed context and draw z from the prior, held until :meth:`adapt` (k = 0)."""
+        self._adapt_context = []
+        self.policy.current_z = th.randn(self.latent_dim, device=self.device)
+
+    def observe(self, obs: np.ndarray, action: Any, reward: float, next_obs: np.ndarray, done: bool) -> None:
+        """
+        Record one transition of the new task (env-space action, as returned by :meth:`predict`).
+
+        :param obs: observation before the action, shape (obs_dim,)
+        :param action: the action taken (env units for Box, an index for Discrete)
+        :param reward: reward received
+        :param next_obs: observation after the action
+        :param done: whether the episode ended (not used by the encoder)
+        """
+        obs_dim = self.policy.obs_dim
+        obs = np.asarray(obs, dtype=np.float32).reshape(-1)
+        next_obs = np.asarray(next_obs, dtype=np.float32).reshape(-1)
+        if obs.shape != (obs_dim,) or next_obs.shape != (obs_dim,):
+            raise ValueError(f"observe() takes one transition: obs and next_obs of shape ({obs_dim},)")
+        if self.policy.discrete:
+            stored = np.array([int(np.asarray(action).reshape(-1)[0])], dtype=np.float32)
+        else:
+            stored = self.policy.scale_action(np.asarray(action, dtype=np.float32).reshape(self.action_space.shape))  # type: ignore[arg-type]
+        self._adapt_context.append((obs, stored.reshape(-1).astype(np.float32), float(reward), next_obs))
+
+    def infer_posterior(self) -> tuple[th.Tensor, th.Tensor]:
+        """Posterior mean and variance (each (latent_dim,)) from everything observed since the last reset."""
+        if not self._adapt_context:
+            return th.zeros(self.latent_dim, device=self.device), th.ones(self.latent_dim, device=self.device)
+        obs, actions, rewards, next_obs = (np.stack(column) for column in zip(*self._adapt_context))
+        tensors = [
+            th.as_tensor(a, device=self.device, dtype=th.float32)[None] for a in (obs, actions, rewards[:, None], next_obs)
+        ]
+        with th.no_grad():
+            mean, var = self.encoder.posterior(self.policy.make_context(*tensors))  # (1, L) each
+        return mean[0], var[0]
+
+    def adapt(self, sample_z: bool = True) -> None:
+        """
+        Infer the posterior from all observed transitions and act with a new z from it.
+
+        :param sample_z: draw z from the posterior (the reference's meta-test) or use its mean
+        """
+        mean, var = self.infer_posterior()
+        self.policy.current_z = mean + var.sqrt() * th.randn_like(mean) if sample_z else mean
+
+    # ------------------------------------------------------------------------------------------
+    # Save / load
+    # ------------------------------------------------------------------------------------------
+    def _excluded_save_params(self) -> list[str]:
+        return [
+            *super()._excluded_save_params(),
+            "encoder",
+            "actor",
+            "critic",
+            "critic_target",
+            "prior_critic",
+            "prior_critic_target",
+            "_adapt_context",
+        ]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "encoder.optimizer", "actor.optimizer", "critic.optimizer"]
+        if self.prior_critic is not None:
+            state_dicts.append("prior_critic.optimizer")
+        if self.ent_coef_optimizer is not None:
+            return [*state_dicts, "ent_coef_optimizer"], ["log_ent_coef"]
+        return state_dicts, ["ent_coef_tensor"]
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """Load the per-task RL and context buffers saved by ``save_replay_buffer``."""
+        buffer = load_from_pkl(path, self.verbose)
+        if isinstance(buffer, ReplayBuffer) or not isinstance(buffer, MetaReplayBuffer):
+            raise ValueError(f"{path} does not hold a MetaReplayBuffer (per-task buffers saved by PEARL / PEARL+)")
+        if buffer.n_tasks != len(self.train_tasks):
+            raise ValueError(f"the replay buffer holds {buffer.n_tasks} tasks but the model has {len(self.train_tasks)}")
+        self.replay_buffer = buffer
+
+
+class PEARL(PEARLPlus):
+    """
+    PEARL (Rakelly et al. 2019): PEARL+ without the prior term and without a prior critic.
+
+    Takes every argument of :class:`PEARLPlus` except ``prior_coef``, ``prior_critic`` and
+    ``prior_critic_arch``.
+    """
+
+    def __init__(self, policy: str | type[PEARLPolicy], env: GymEnv | str, **kwargs: Any):
+        for name in ("prior_coef", "prior_critic", "prior_critic_arch"):
+            if name in kwargs:
+                raise ValueError(f"PEARL has no {name!r}: use PEARLPlus for the prior-regularised algorithm")
+        super().__init__(policy, env, prior_coef=0.0, prior_critic="none", **kwargs)
+
+    @staticmethod
+    def _prior_critic_modes() -> tuple[str, ...]:
+        return ("none",)
+
+    def learn(  # type: ignore[override]
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str = "PEARL",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> PEARL:
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)

@@ -1,0 +1,321 @@
+"""Networks of PEARL and PEARL+: context encoder, z-conditioned actor, twin critics, prior critic.
+
+Every network takes the latent task variable z concatenated to the observation. Box actions use a
+tanh-squashed Gaussian actor and critics Q(s, z, a) -> R; Discrete actions use a categorical actor
+and critics Q(s, z) -> R^|A| (soft discrete SAC, exact expectations over actions).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.torch_layers import create_mlp
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+from torch.func import functional_call
+from torch.nn import functional as F
+
+from sb3_pearl.common.context import product_of_gaussians
+
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+PRIOR_CRITIC_MODES = ("separate", "shared", "none")
+
+
+class ContextEncoder(nn.Module):
+    """
+    q(z | c): one Gaussian factor per context transition, combined by product of Gaussians.
+
+    :param context_dim: size of one context transition (s, a, r[, s'])
+    :param latent_dim: size of z
+    :param net_arch: hidden layer sizes
+    :param activation_fn: activation between hidden layers
+    """
+
+    def __init__(self, context_dim: int, latent_dim: int, net_arch: list[int], activation_fn: type[nn.Module] = nn.ReLU):
+        super().__init__()
+        self.latent_dim = latent_dim
+        self.net = nn.Sequential(*create_mlp(context_dim, 2 * latent_dim, net_arch, activation_fn))
+
+    def forward(self, context: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Per-transition factors: ``context`` (T, N, D) -> means and variances, each (T, N, L)."""
+        out = self.net(context)
+        mu, pre_var = out[..., : self.latent_dim], out[..., self.latent_dim :]
+        return mu, F.softplus(pre_var)
+
+    def posterior(self, context: th.Tensor, mask: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
+        """q(z | c) per task: ``context`` (T, N, D) -> means and variances, each (T, L)."""
+        return product_of_gaussians(*self(context), mask=mask)
+
+
+class SquashedGaussianActor(nn.Module):
+    """
+    pi(a | s, z) for Box actions: tanh-squashed diagonal Gaussian, log std clamped to [-20, 2].
+
+    :param input_dim: obs_dim + latent_dim
+    :param action_dim: action size
+    :param net_arch: hidden layer sizes
+    :param activation_fn: activation between hidden layers
+    """
+
+    def __init__(self, input_dim: int, action_dim: int, net_arch: list[int], activation_fn: type[nn.Module] = nn.ReLU):
+        super().__init__()
+        self.latent_pi = nn.Sequential(*create_mlp(input_dim, -1, net_arch, activation_fn))
+        last = net_arch[-1] if net_arch else input_dim
+        self.mu = nn.Linear(last, action_dim)
+        self.log_std = nn.Linear(last, action_dim)
+        self.action_dist = SquashedDiagGaussianDistribution(action_dim)
+
+    def _params(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        h = self.latent_pi(x)
+        return self.mu(h), th.clamp(self.log_std(h), LOG_STD_MIN, LOG_STD_MAX)
+
+    def action_log_prob(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Reparameterised actions in [-1, 1] (N, A) and their log-probabilities (N,)."""
+        mean, log_std = self._params(x)
+        return self.action_dist.log_prob_from_params(mean, log_std)
+
+    def forward(self, x: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        mean, log_std = self._params(x)
+        return self.action_dist.actions_from_params(mean, log_std, deterministic=deterministic)
+
+
+class CategoricalActor(nn.Module):
+    """
+    pi(a | s, z) for Discrete actions.
+
+    :param input_dim: obs_dim + latent_dim
+    :param n_actions: number of actions
+    :param net_arch: hidden layer sizes
+    :param activation_fn: activation between hidden layers
+    """
+
+    def __init__(self, input_dim: int, n_actions: int, net_arch: list[int], activation_fn: type[nn.Module] = nn.ReLU):
+        super().__init__()
+        self.logits = nn.Sequential(*create_mlp(input_dim, n_actions, net_arch, activation_fn))
+
+    def probs(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Action probabilities and log-probabilities, each (N, n_actions)."""
+        log_probs = F.log_softmax(self.logits(x), dim=-1)
+        return log_probs.exp(), log_probs
+
+    def forward(self, x: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        logits = self.logits(x)
+        if deterministic:
+            return logits.argmax(dim=-1)
+        return th.distributions.Categorical(logits=logits).sample()
+
+
+class LatentCritic(nn.Module):
+    """
+    ``n_critics`` independent Q networks (independent initialisations) on the same input.
+
+    Box: input (s, z, a), output 1. Discrete: input (s, z), output one value per action.
+
+    :param input_dim: input size
+    :param output_dim: 1 (Box) or the number of actions (Discrete)
+    :param net_arch: hidden layer sizes
+    :param n_critics: number of Q networks
+    :param activation_fn: activation between hidden layers
+    """
+
+    def __init__(
+        self,
+        input_dim: int,
+        output_dim: int,
+        net_arch: list[int],
+        n_critics: int = 2,
+        activation_fn: type[nn.Module] = nn.ReLU,
+    ):
+        super().__init__()
+        self.q_networks = nn.ModuleList(
+            nn.Sequential(*create_mlp(input_dim, output_dim, net_arch, activation_fn)) for _ in range(n_critics)
+        )
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        """Q values of every network, shape ``(n_critics, N, output_dim)``."""
+        return th.stack([q(x) for q in self.q_networks])
+
+    def forward_frozen(self, x: th.Tensor) -> th.Tensor:
+        """Like :meth:`forward` but with detached parameters: gradients reach ``x`` only (actor losses)."""
+        params = {name: p.detach() for name, p in self.named_parameters()}
+        return functional_call(self, params, (x,))
+
+
+class PEARLPolicy(BasePolicy):
+    """
+    Policy holding every network of PEARL / PEARL+ and their optimizers.
+
+    ``predict`` acts with :attr:`current_z` (set by the algorithm's adaptation API): SB3's
+    ``predict`` never sees rewards, so task inference happens outside it.
+
+    :param observation_space: flat Box observation space
+    :param action_space: Box or Discrete
+    :param lr_schedule: learning rate schedule (all optimizers)
+    :param net_arch: hidden sizes of the actor and the critics (reference: [300, 300, 300])
+    :param activation_fn: activation function
+    :param latent_dim: size of z (reference: 5)
+    :param encoder_arch: hidden sizes of the context encoder (reference: [200, 200, 200])
+    :param use_next_obs_in_context: context transitions are (s, a, r, s') instead of (s, a, r)
+    :param prior_critic: ``"separate"`` (PEARL+: extra critic Q~(s, a, z0)), ``"shared"`` (ablation
+        PEARL+ (w/o): the prior term uses Q(s, a, z0)) or ``"none"`` (PEARL)
+    :param prior_critic_arch: hidden sizes of the prior critic (paper: [300]*3, ablation [100]*3)
+    :param n_critics: number of Q networks in each critic
+    :param optimizer_class: optimizer
+    :param optimizer_kwargs: extra optimizer arguments
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        lr_schedule: Schedule,
+        net_arch: list[int] | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        latent_dim: int = 5,
+        encoder_arch: list[int] | None = None,
+        use_next_obs_in_context: bool = False,
+        prior_critic: str = "separate",
+        prior_critic_arch: list[int] | None = None,
+        n_critics: int = 2,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ):
+        if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) != 1:
+            raise ValueError(f"PEARL needs a flat Box observation space of shape (obs_dim,), got {observation_space}")
+        if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
+            raise ValueError(f"PEARL supports Box and Discrete action spaces, got {type(action_space).__name__}")
+        if prior_critic not in PRIOR_CRITIC_MODES:
+            raise ValueError(f"prior_critic must be one of {PRIOR_CRITIC_MODES}, got {prior_critic!r}")
+        if latent_dim < 1:
+            raise ValueError(f"latent_dim must be >= 1, got {latent_dim}")
+        super().__init__(
+            observation_space,
+            action_space,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            squash_output=isinstance(action_space, spaces.Box),
+        )
+        self.net_arch = list(net_arch) if net_arch is not None else [300, 300, 300]
+        self.activation_fn = activation_fn
+        self.latent_dim = latent_dim
+        self.encoder_arch = list(encoder_arch) if encoder_arch is not None else [200, 200, 200]
+        self.use_next_obs_in_context = use_next_obs_in_context
+        self.prior_critic_mode = prior_critic
+        self.prior_critic_arch = list(prior_critic_arch) if prior_critic_arch is not None else [300, 300, 300]
+        self.n_critics = n_critics
+        self.discrete = isinstance(action_space, spaces.Discrete)
+        self.obs_dim = int(observation_space.shape[0])
+        self.action_dim = (
+            int(action_space.n) if isinstance(action_space, spaces.Discrete) else int(np.prod(action_space.shape))
+        )
+        # z used by predict(); set by the adaptation API, never saved (it is not a parameter or buffer).
+        self.current_z = th.zeros(latent_dim)
+        self._build(lr_schedule)
+
+    @property
+    def context_dim(self) -> int:
+        """Size of one context transition: s, a (one-hot if Discrete), r[, s']."""
+        return self.obs_dim * (2 if self.use_next_obs_in_context else 1) + self.action_dim + 1
+
+    def _make_critic(self, net_arch: list[int]) -> LatentCritic:
+        obs_z = self.obs_dim + self.latent_dim
+        if self.discrete:
+            return LatentCritic(obs_z, self.action_dim, net_arch, self.n_critics, self.activation_fn)
+        return LatentCritic(obs_z + self.action_dim, 1, net_arch, self.n_critics, self.activation_fn)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        obs_z = self.obs_dim + self.latent_dim
+        self.encoder = ContextEncoder(self.context_dim, self.latent_dim, self.encoder_arch, self.activation_fn)
+        self.actor: SquashedGaussianActor | CategoricalActor
+        if self.discrete:
+            self.actor = CategoricalActor(obs_z, self.action_dim, self.net_arch, self.activation_fn)
+        else:
+            self.actor = SquashedGaussianActor(obs_z, self.action_dim, self.net_arch, self.activation_fn)
+        self.critic = self._make_critic(self.net_arch)
+        self.critic_target = self._make_critic(self.net_arch)
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        self.critic_target.requires_grad_(False)
+        self.prior_critic: LatentCritic | None = None
+        self.prior_critic_target: LatentCritic | None = None
+        if self.prior_critic_mode == "separate":
+            self.prior_critic = self._make_critic(self.prior_critic_arch)
+            self.prior_critic_target = self._make_critic(self.prior_critic_arch)
+            self.prior_critic_target.load_state_dict(self.prior_critic.state_dict())
+            self.prior_critic_target.requires_grad_(False)
+
+        def make_optimizer(module: nn.Module) -> th.optim.Optimizer:
+            return self.optimizer_class(module.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
+
+        self.encoder.optimizer = make_optimizer(self.encoder)  # type: ignore[assignment]
+        self.actor.optimizer = make_optimizer(self.actor)  # type: ignore[assignment]
+        self.critic.optimizer = make_optimizer(self.critic)  # type: ignore[assignment]
+        if self.prior_critic is not None:
+            self.prior_critic.optimizer = make_optimizer(self.prior_critic)  # type: ignore[assignment]
+        self.set_training_mode(False)
+
+    def optimizers(self) -> list[th.optim.Optimizer]:
+        """The network optimizers (not the entropy coefficient's), for learning-rate updates."""
+        modules: list[nn.Module] = [self.encoder, self.actor, self.critic]
+        if self.prior_critic is not None:
+            modules.append(self.prior_critic)
+        return [m.optimizer for m in modules]  # type: ignore[misc]
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            net_arch=self.net_arch,
+            activation_fn=self.activation_fn,
+            latent_dim=self.latent_dim,
+            encoder_arch=self.encoder_arch,
+            use_next_obs_in_context=self.use_next_obs_in_context,
+            prior_critic=self.prior_critic_mode,
+            prior_critic_arch=self.prior_critic_arch,
+            n_critics=self.n_critics,
+            optimizer_class=self.optimizer_class,
+            optimizer_kwargs=self.optimizer_kwargs,
+        )
+        return data
+
+    # -- context -----------------------------------------------------------------------------
+    def actions_for_networks(self, actions: th.Tensor) -> th.Tensor:
+        """Stored actions -> network input: scaled Box vectors as they are, Discrete indices one-hot."""
+        if self.discrete:
+            return F.one_hot(actions[..., 0].long(), self.action_dim).to(th.float32)
+        return actions
+
+    def make_context(
+        self, observations: th.Tensor, actions: th.Tensor, rewards: th.Tensor, next_observations: th.Tensor
+    ) -> th.Tensor:
+        """Context transitions from stored tensors of leading shape (T, N): -> (T, N, context_dim)."""
+        parts = [observations, self.actions_for_networks(actions), rewards]
+        if self.use_next_obs_in_context:
+            parts.append(next_observations)
+        return th.cat(parts, dim=-1)
+
+    # -- acting ------------------------------------------------------------------------------
+    def act(self, observations: th.Tensor, z: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """Actions for observations (N, obs_dim) under latents z (N, L) or (L,): scaled Box actions or indices."""
+        if z.dim() == 1:
+            z = z.expand(observations.shape[0], -1)
+        return self.actor(th.cat([observations, z], dim=-1), deterministic=deterministic)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic=deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        assert isinstance(observation, th.Tensor)
+        return self.act(observation.float(), self.current_z.to(observation.device), deterministic)
+
+    def set_training_mode(self, mode: bool) -> None:
+        for module in (self.encoder, self.actor, self.critic, self.prior_critic):
+            if module is not None:
+                module.train(mode)
+        self.training = mode
+
+
+MlpPolicy = PEARLPolicy
