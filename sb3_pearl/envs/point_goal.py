@@ -51,6 +51,7 @@ class PointGoalMetaEnv(MetaTaskEnv, gym.Env):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.goal_low = float(goal_low)
         self.goal_high = float(goal_high)
+        self.max_step = float(max_step)
         self.render_mode = render_mode
         self.observation_space = spaces.Box(-2.0, 2.0, shape=(2,), dtype=np.float32)
         self.action_space = spaces.Box(-max_step, max_step, shape=(2,), dtype=np.float32)
@@ -73,7 +74,7 @@ class PointGoalMetaEnv(MetaTaskEnv, gym.Env):
         return self._obs(), {"cost": 0.0}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        action = np.clip(np.asarray(action, dtype=np.float64).reshape(2), self.action_space.low, self.action_space.high)
+        action = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -self.max_step, self.max_step)
         self._pos = np.clip(self._pos + action, -2.0, 2.0)
         distance = float(np.linalg.norm(self._pos - self.goal))
         return self._obs(), -distance, False, False, {"cost": 0.0, "distance": distance}

@@ -1,0 +1,225 @@
+"""learn(), the SB3 contract, data collection per task, save/load, determinism and errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+
+from sb3_pearl import PEARL, PEARLPlus
+from sb3_pearl.envs.point_goal import PointGoalMetaEnv
+from tests.conftest import make_discrete_env, make_point_env
+
+
+class CountSteps(BaseCallback):
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls = 0
+
+    def _on_step(self) -> bool:
+        self.calls += 1
+        return True
+
+
+def _assert_rewards_match_tasks(model: PEARLPlus) -> None:
+    """PointGoal reward is -||s' - goal||: every stored transition must belong to its task's goal."""
+    rl = model.replay_buffer.rl
+    for task_index, task in enumerate(model.train_tasks):
+        n = rl.size[task_index]
+        assert n > 0
+        expected = -np.linalg.norm(rl.next_observations[task_index, :n] - np.asarray(task["goal"], dtype=np.float32), axis=-1)
+        np.testing.assert_allclose(rl.rewards[task_index, :n, 0], expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("n_envs,vec_env_cls", [(1, DummyVecEnv), (2, DummyVecEnv), (2, SubprocVecEnv)])
+def test_learn_box_n_envs_keeps_tasks_apart(n_envs: int, vec_env_cls: type, tiny_kwargs: dict[str, Any]) -> None:
+    env = make_vec_env(make_point_env, n_envs=n_envs, vec_env_cls=vec_env_cls, seed=0)
+    model = PEARLPlus("MlpPolicy", env, seed=0, **tiny_kwargs)
+    counter = CountSteps()
+    total = 4 * 60 + 2 * 70
+    model.learn(total, callback=counter)
+    assert model.num_timesteps == total
+    assert model.replay_buffer.total_transitions() == total
+    assert counter.calls >= total // n_envs
+    assert model.n_iterations == 2
+    _assert_rewards_match_tasks(model)
+    env.close()
+
+
+@pytest.mark.parametrize("n_envs", [1, 2])
+def test_learn_discrete(n_envs: int, tiny_kwargs: dict[str, Any]) -> None:
+    env = make_vec_env(make_discrete_env, n_envs=n_envs, seed=0)
+    model = PEARLPlus("MlpPolicy", env, seed=0, **tiny_kwargs)
+    model.learn(400)
+    assert model.num_timesteps == 400 and model._n_updates > 0
+    _assert_rewards_match_tasks(model)
+    actions = model.replay_buffer.rl.actions[0, : model.replay_buffer.rl.size[0], 0]
+    assert set(np.unique(actions)) <= set(range(5))
+    model.reset_adaptation()
+    action, _ = model.predict(np.zeros(2, dtype=np.float32), deterministic=True)
+    assert env.action_space.contains(int(action))
+
+
+def test_termination_vs_truncation_and_cost(tiny_kwargs: dict[str, Any]) -> None:
+    """Hazard entries (true terminations) store done=1; time-limit ends store done=0."""
+    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=1, **{**tiny_kwargs, "num_initial_steps": 300})
+    # Drive straight up (0.07 per step: positions 0.07, 0.14, 0.21 -> inside, clear of the boundary) into the hazard: the actor is replaced by a scripted policy for collection.
+    model.policy.act = lambda obs, z, deterministic=False: th.tensor([[0.0, 0.7]]).expand(obs.shape[0], -1)  # type: ignore[method-assign]
+    model.learn(300)
+    rl = model.replay_buffer.rl
+    n = rl.size[0]
+    dones = rl.dones[0, :n, 0]
+    in_hazard = np.linalg.norm(rl.next_observations[0, :n] - np.array([0.0, 0.5]), axis=-1) < 0.3
+    np.testing.assert_array_equal(dones == 1.0, in_hazard)
+    assert dones.sum() > 0
+
+
+def test_time_limit_is_not_terminal(tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARL("MlpPolicy", "PointGoalMeta-v0", seed=0, **{k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"})
+    model.learn(240)
+    assert model.replay_buffer.rl.dones.sum() == 0.0  # 20-step episodes end by truncation only
+
+
+def test_seeded_runs_are_identical(tiny_kwargs: dict[str, Any]) -> None:
+    def run() -> tuple[list[dict[str, Any]], list[th.Tensor]]:
+        model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=7, **tiny_kwargs)
+        model.learn(400)
+        return model.train_tasks, [p.detach().clone() for p in model.policy.parameters()]
+
+    tasks_a, params_a = run()
+    tasks_b, params_b = run()
+    assert tasks_a == tasks_b
+    assert all(th.equal(a, b) for a, b in zip(params_a, params_b))
+
+
+def test_tasks_come_from_sample_tasks_with_the_seed(tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=5, **tiny_kwargs)
+    expected = gym.make("SafePointGoalMeta-v0").unwrapped.sample_tasks(6, seed=5)
+    assert model.train_tasks == expected[:4] and model.test_tasks == expected[4:]
+
+
+@pytest.mark.parametrize("discrete", [False, True])
+def test_save_load_equivalence(tmp_path: Path, discrete: bool, tiny_kwargs: dict[str, Any]) -> None:
+    env = make_discrete_env() if discrete else gym.make("SafePointGoalMeta-v0")
+    model = PEARLPlus("MlpPolicy", env, seed=0, **tiny_kwargs)
+    model.learn(400)
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    loaded = PEARLPlus.load(tmp_path / "model.zip")  # no env needed
+    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
+    obs = th.rand(32, 2) * 2 - 1
+    z = th.randn(32, model.latent_dim)
+    assert th.equal(model.policy.act(obs, z, deterministic=True), loaded.policy.act(obs, z, deterministic=True))
+    x = th.cat([obs, z], dim=-1)
+    if not discrete:
+        x = th.cat([x, th.rand(32, 2) * 2 - 1], dim=-1)
+    assert model.prior_critic is not None and loaded.prior_critic is not None
+    assert th.equal(model.prior_critic(x), loaded.prior_critic(x))
+    assert th.equal(model.critic_target(x), loaded.critic_target(x))
+    for name in ("encoder", "actor", "critic", "prior_critic"):
+        saved = getattr(model, name).optimizer.state_dict()["state"]
+        restored = getattr(loaded, name).optimizer.state_dict()["state"]
+        assert th.equal(saved[0]["exp_avg"], restored[0]["exp_avg"]), name
+    assert loaded.log_ent_coef is not None and th.equal(loaded.log_ent_coef, model.log_ent_coef)
+    # Adaptation gives the same posterior from the same context.
+    for m in (model, loaded):
+        m.reset_adaptation()
+        for t in range(5):
+            m.observe(np.array([0.1 * t, 0.0]), 1 if discrete else np.array([0.05, -0.05]), -1.0 + t, np.array([0.1, 0.2]), False)
+    assert all(th.allclose(a, b) for a, b in zip(model.infer_posterior(), loaded.infer_posterior()))
+    # Buffers round trip, and training goes on with the env set again.
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    np.testing.assert_array_equal(loaded.replay_buffer.rl.observations, model.replay_buffer.rl.observations)
+    np.testing.assert_array_equal(loaded.replay_buffer.context.size, model.replay_buffer.context.size)
+    loaded.set_env(env)
+    loaded.learn(100, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 500
+
+
+def test_load_rejects_another_env(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **tiny_kwargs)
+    model.save(tmp_path / "model.zip")
+    with pytest.raises(ValueError, match="Action spaces do not match|Observation spaces do not match"):
+        PEARLPlus.load(tmp_path / "model.zip", env=make_vec_env(make_discrete_env))
+
+
+def test_adaptation_api(tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **tiny_kwargs)
+    model.learn(300)
+    model.reset_adaptation()
+    prior_z = model.policy.current_z.clone()
+    mean, var = model.infer_posterior()
+    assert th.equal(mean, th.zeros(3)) and th.equal(var, th.ones(3))  # no data: the prior
+    env = gym.make("PointGoalMeta-v0")
+    env.unwrapped.set_task(model.test_tasks[0])
+    obs, _ = env.reset(seed=0)
+    for _ in range(20):
+        action, _ = model.predict(obs, deterministic=True)
+        assert th.equal(model.policy.current_z, prior_z)  # z is held during the prior trajectory
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        model.observe(obs, action, float(reward), next_obs, terminated or truncated)
+        obs = next_obs
+    model.adapt(sample_z=False)
+    mean, var = model.infer_posterior()
+    assert th.equal(model.policy.current_z, mean) and bool((var < 1).all())
+    model.reset_adaptation()
+    assert model._adapt_context == [] and not th.equal(model.policy.current_z, mean)
+
+
+def test_progress_bar_and_logger_keys(tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **tiny_kwargs)
+    model.learn(300, progress_bar=True, log_interval=1000)  # no dump: the recorded values stay readable
+    expected = {"critic_loss", "prior_critic_loss", "actor_loss", "prior_actor_loss", "kl", "ent_coef", "z_mean_abs", "z_var"}
+    assert {f"train/{key}" for key in expected} <= set(model.logger.name_to_value)
+    assert model.logger.name_to_value["train/kl"] > 0
+
+
+class NoTaskEnv(gym.Env):
+    observation_space = spaces.Box(-1, 1, (2,))
+    action_space = spaces.Box(-1, 1, (2,))
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        return np.zeros(2, dtype=np.float32), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        return np.zeros(2, dtype=np.float32), 0.0, False, False, {}
+
+
+class MultiDiscretePoint(PointGoalMetaEnv):
+    def __init__(self) -> None:
+        super().__init__()
+        self.action_space = spaces.MultiDiscrete([3, 3])
+
+
+def test_clear_errors(tiny_kwargs: dict[str, Any]) -> None:
+    with pytest.raises(ValueError, match="task protocol"):
+        PEARLPlus("MlpPolicy", NoTaskEnv())
+    with pytest.raises(ValueError, match="Box and Discrete"):
+        PEARLPlus("MlpPolicy", MultiDiscretePoint())
+    with pytest.raises(ValueError, match="prior_coef must be >= 0"):
+        PEARLPlus("MlpPolicy", "PointGoalMeta-v0", prior_coef=-0.1)
+    with pytest.raises(ValueError, match="unknown prior_critic mode 'both'"):
+        PEARLPlus("MlpPolicy", "PointGoalMeta-v0", prior_critic="both")
+    with pytest.raises(ValueError, match="PEARL has no 'prior_coef'"):
+        PEARL("MlpPolicy", "PointGoalMeta-v0", prior_coef=0.1)
+    with pytest.raises(ValueError, match="VecNormalize"):
+        PEARLPlus("MlpPolicy", VecNormalize(make_vec_env("PointGoalMeta-v0")))
+    with pytest.raises(ValueError, match="ent_coef"):
+        PEARLPlus("MlpPolicy", "PointGoalMeta-v0", ent_coef="fixed")
+
+
+def test_pearl_has_no_prior_critic(tiny_kwargs: dict[str, Any]) -> None:
+    kwargs = {k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"}
+    model = PEARL("MlpPolicy", "PointGoalMeta-v0", seed=0, **kwargs)
+    assert model.prior_coef == 0.0 and model.prior_critic is None
+    assert not any("prior" in name for name in model.policy.state_dict())
+    shared = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, prior_critic="shared", **kwargs)
+    assert shared.prior_critic is None and shared.prior_coef == 0.1
