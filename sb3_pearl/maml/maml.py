@@ -1,0 +1,757 @@
+"""MAML-TRPO (Finn et al. 2017, "Model-Agnostic Meta-Learning for Fast Adaptation of Deep Networks").
+
+One meta-iteration:
+
+1. draw ``meta_batch_size`` training tasks;
+2. roll out ``episodes_per_task`` trajectories per task with the meta-parameters ``theta`` (pre-adaptation);
+3. per task, ``num_inner_steps`` vanilla policy-gradient steps from ``theta`` on those trajectories
+   (advantages: GAE over a linear feature baseline fitted by least squares), giving ``theta'_i``;
+4. roll out ``episodes_per_task`` trajectories per task with ``theta'_i`` (post-adaptation);
+5. one TRPO step on ``theta`` for the surrogate of the post-adaptation data, where ``theta'_i`` is
+   recomputed from ``theta`` (so the meta-gradient flows through the inner step: second order unless
+   ``first_order=True``): conjugate gradient on Fisher-vector products of the mean KL, a step scaled
+   to the KL bound, and a backtracking line search that re-adapts every candidate and accepts it
+   only when the surrogate improves and the KL stays within ``max_kl``.
+
+The adaptation API shared by every algorithm of the project (``reset_adaptation``, ``observe``,
+``adapt``, ``predict``) runs step 3 on the trajectories seen on a new task.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any, ClassVar, NamedTuple, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.utils import safe_mean
+from torch.nn.utils import parameters_to_vector, vector_to_parameters
+
+from sb3_pearl.maml.policies import MAMLPolicy, MlpPolicy, Params
+
+SelfMAML = TypeVar("SelfMAML", bound="MAML")
+
+Task = dict[str, Any]
+TASK_METHODS = ("sample_tasks", "set_task", "get_task")
+
+
+class EpisodeBatch(NamedTuple):
+    """Trajectories of ``T`` tasks, ``E`` episodes each, padded to ``H`` steps (numpy arrays)."""
+
+    observations: np.ndarray  # (T, E, H, obs_dim) float32
+    actions: np.ndarray  # (T, E, H, act_dim) raw normalised Box actions, or (T, E, H, 1) Discrete indices
+    rewards: np.ndarray  # (T, E, H) float32, 0 after the end of an episode
+    lengths: np.ndarray  # (T, E) int64, steps of each episode
+
+
+class TaskSamples(NamedTuple):
+    """The valid steps of one task's trajectories, flattened, as tensors for the losses."""
+
+    observations: th.Tensor  # (N, obs_dim)
+    actions: th.Tensor  # (N, act_dim) float for Box, (N,) long for Discrete
+    advantages: th.Tensor  # (N,)
+
+
+class OldPolicy(NamedTuple):
+    """The sampling (adapted) policy on one task's post-adaptation data, detached."""
+
+    log_prob: th.Tensor  # (N,)
+    distribution: th.distributions.Distribution  # batch shape (N,)
+
+
+class TRPOInfo(NamedTuple):
+    """Outcome of one TRPO meta-update."""
+
+    surrogate_before: float
+    surrogate_after: float
+    kl: float  # mean KL(old || new) after the step (0 if rejected)
+    step_size: float  # multiplier of the CG direction that was applied (0 if rejected)
+    n_backtracks: int
+    accepted: bool
+
+
+def conjugate_gradient(fvp: Any, b: th.Tensor, n_iters: int = 10, residual_tol: float = 1e-10) -> th.Tensor:
+    """
+    Solve ``F x = b`` for a symmetric positive definite ``F`` given only as a product ``fvp(v) = F v``.
+
+    :param fvp: function returning ``F v``
+    :param b: right-hand side, shape ``(P,)``
+    :param n_iters: maximum number of iterations
+    :param residual_tol: stop when the squared residual norm falls below this
+    :return: the approximate solution, shape ``(P,)``
+    """
+    x = th.zeros_like(b)
+    r = b.clone()
+    p = b.clone()
+    r_dot = r @ r
+    for _ in range(n_iters):
+        fp = fvp(p)
+        alpha = r_dot / (p @ fp + 1e-12)
+        x = x + alpha * p
+        r = r - alpha * fp
+        new_r_dot = r @ r
+        if new_r_dot < residual_tol:
+            break
+        p = r + (new_r_dot / r_dot) * p
+        r_dot = new_r_dot
+    return x
+
+
+class MAML(BaseAlgorithm):
+    """
+    MAML-TRPO: Model-Agnostic Meta-Learning with a TRPO outer loop (Finn et al. 2017).
+    Paper: https://arxiv.org/abs/1703.03400
+
+    The env must follow the task protocol of ``sb3_pearl.envs`` (``sample_tasks``, ``set_task``,
+    ``get_task``); each env of the VecEnv runs one task at a time.
+
+    :param policy: the policy, ``"MlpPolicy"`` or a :class:`MAMLPolicy` subclass
+    :param env: the task-family env (id, gymnasium env or VecEnv; ``SubprocVecEnv`` works)
+    :param inner_lr: step size of the inner vanilla policy-gradient update(s)
+    :param num_inner_steps: number of inner updates per task (all on the same pre-adaptation trajectories)
+    :param first_order: drop the second-order term (treat the inner gradient as a constant)
+    :param meta_batch_size: tasks per meta-iteration
+    :param episodes_per_task: trajectories per task, both before and after adaptation
+    :param max_episode_steps: episode length; ``None`` uses the env's registered time limit
+    :param n_train_tasks: size of the training task list (``env.sample_tasks(n, seed)``)
+    :param n_test_tasks: size of the held-out test task list (``env.sample_tasks(n, seed + 1)``)
+    :param gamma: discount factor
+    :param gae_lambda: GAE lambda (1: Monte-Carlo returns minus the baseline)
+    :param normalize_advantage: standardise the advantages per task (inner and outer losses)
+    :param baseline_reg: ridge coefficient of the linear feature baseline's least-squares fit
+    :param max_kl: KL bound of the TRPO step (mean over tasks of the mean per-state KL)
+    :param cg_iters: conjugate-gradient iterations
+    :param cg_damping: damping added to the Fisher-vector products
+    :param ls_backtrack_ratio: shrink factor of the backtracking line search
+    :param ls_max_steps: maximum number of line-search candidates
+    :param policy_kwargs: keyword arguments for the policy (``net_arch``, ``activation_fn``, ``log_std_init``)
+    :param stats_window_size: window (episodes) of the rollout statistics in the logs
+    :param tensorboard_log: TensorBoard log directory
+    :param seed: random seed (also seeds the train/test task lists)
+    :param verbose: 0 silent, 1 info, 2 debug
+    :param device: torch device (``"cpu"`` is the sensible choice for these small networks)
+    :param _init_setup_model: build the networks at construction
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
+    policy: MAMLPolicy
+
+    def __init__(
+        self,
+        policy: str | type[MAMLPolicy],
+        env: GymEnv | str | None,
+        inner_lr: float = 0.1,
+        num_inner_steps: int = 1,
+        first_order: bool = False,
+        meta_batch_size: int = 40,
+        episodes_per_task: int = 20,
+        max_episode_steps: int | None = None,
+        n_train_tasks: int = 100,
+        n_test_tasks: int = 30,
+        gamma: float = 0.99,
+        gae_lambda: float = 1.0,
+        normalize_advantage: bool = True,
+        baseline_reg: float = 1e-5,
+        max_kl: float = 1e-2,
+        cg_iters: int = 10,
+        cg_damping: float = 1e-5,
+        ls_backtrack_ratio: float = 0.8,
+        ls_max_steps: int = 15,
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        seed: int | None = None,
+        verbose: int = 0,
+        device: th.device | str = "cpu",
+        _init_setup_model: bool = True,
+    ) -> None:
+        super().__init__(
+            policy,
+            env,
+            learning_rate=inner_lr,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            support_multi_env=True,
+            seed=seed,
+        )
+        if inner_lr < 0 or num_inner_steps < 1:
+            raise ValueError(f"inner_lr must be >= 0 and num_inner_steps >= 1, got {inner_lr} and {num_inner_steps}")
+        if meta_batch_size < 1 or episodes_per_task < 1:
+            raise ValueError(f"meta_batch_size and episodes_per_task must be >= 1, got {meta_batch_size}, {episodes_per_task}")
+        if n_train_tasks < 1 or n_test_tasks < 0:
+            raise ValueError(f"n_train_tasks must be >= 1 and n_test_tasks >= 0, got {n_train_tasks}, {n_test_tasks}")
+        if max_kl <= 0 or cg_iters < 1 or not 0 < ls_backtrack_ratio < 1 or ls_max_steps < 1:
+            raise ValueError("need max_kl > 0, cg_iters >= 1, 0 < ls_backtrack_ratio < 1 and ls_max_steps >= 1")
+        if max_episode_steps is not None and max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be >= 1 or None, got {max_episode_steps}")
+        self.inner_lr = inner_lr
+        self.num_inner_steps = num_inner_steps
+        self.first_order = first_order
+        self.meta_batch_size = meta_batch_size
+        self.episodes_per_task = episodes_per_task
+        self.max_episode_steps = max_episode_steps
+        self.n_train_tasks = n_train_tasks
+        self.n_test_tasks = n_test_tasks
+        self.gamma = gamma
+        self.gae_lambda = gae_lambda
+        self.normalize_advantage = normalize_advantage
+        self.baseline_reg = baseline_reg
+        self.max_kl = max_kl
+        self.cg_iters = cg_iters
+        self.cg_damping = cg_damping
+        self.ls_backtrack_ratio = ls_backtrack_ratio
+        self.ls_max_steps = ls_max_steps
+        self.train_tasks: list[Task] | None = None
+        self.test_tasks: list[Task] | None = None
+        self._task_rng: np.random.Generator | None = None
+        # Adaptation state (meta-test): never saved
+        self._adapt_episodes: list[tuple[list[np.ndarray], list[np.ndarray], list[float]]] = []
+        self._current_episode: tuple[list[np.ndarray], list[np.ndarray], list[float]] = ([], [], [])
+
+        if self.env is not None:
+            self._check_env(self.env)
+
+        if _init_setup_model:
+            self._setup_model()
+
+    # ------------------------------------------------------------------------------------------
+    # set-up
+    # ------------------------------------------------------------------------------------------
+    def _check_env(self, env: Any) -> None:
+        if not isinstance(self.action_space, (spaces.Box, spaces.Discrete)):
+            raise ValueError(
+                f"MAML supports Box (Gaussian policy) and Discrete (categorical policy) action spaces, got {self.action_space}"
+            )
+        if not isinstance(self.observation_space, spaces.Box):
+            raise ValueError(f"MAML supports Box observation spaces only, got {self.observation_space}")
+        missing = [name for name in TASK_METHODS if not env.has_attr(name)]
+        if missing:
+            raise ValueError(
+                f"MAML needs a task-family env (sample_tasks(n, seed), set_task(task), get_task()); missing {missing}. "
+                "See sb3_pearl.envs.task_protocol, e.g. gym.make('PointGoalMeta-v0')."
+            )
+
+    def _setup_model(self) -> None:
+        self.set_random_seed(self.seed)
+        self.policy = self.policy_class(self.observation_space, self.action_space, **self.policy_kwargs)  # type: ignore[assignment]
+        self.policy = self.policy.to(self.device)
+        if not isinstance(self.policy, MAMLPolicy):
+            raise ValueError(f"MAML needs a MAMLPolicy, got {type(self.policy).__name__}")
+        if self._task_rng is None:
+            self._task_rng = np.random.default_rng(self.seed)
+        if self.env is not None:
+            if self.max_episode_steps is None:
+                spec = self.env.get_attr("spec", indices=[0])[0]
+                limit = getattr(spec, "max_episode_steps", None)
+                if limit is None:
+                    raise ValueError("The env has no registered time limit: pass max_episode_steps to MAML")
+                self.max_episode_steps = int(limit)
+            if self.train_tasks is None or self.test_tasks is None:
+                task_seed = int(self.seed) if self.seed is not None else int(self._task_rng.integers(2**31 - 1))
+                self.train_tasks = self.env.env_method("sample_tasks", self.n_train_tasks, task_seed, indices=[0])[0]
+                self.test_tasks = self.env.env_method("sample_tasks", self.n_test_tasks, task_seed + 1, indices=[0])[0]
+        self.reset_adaptation()
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "_adapt_episodes", "_current_episode"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        return ["policy"], []
+
+    # ------------------------------------------------------------------------------------------
+    # sampling
+    # ------------------------------------------------------------------------------------------
+    @property
+    def _act_store_dim(self) -> int:
+        return self.policy.action_dim if self.policy.continuous else 1
+
+    def _env_actions(self, raw: th.Tensor) -> np.ndarray:
+        """Raw policy samples -> actions for the env (Box: clip to [-1, 1] and rescale to the box)."""
+        if self.policy.continuous:
+            return self.policy.unscale_action(raw.clamp(-1.0, 1.0).cpu().numpy())
+        return raw.cpu().numpy()
+
+    def _reset_one(self, env_idx: int) -> np.ndarray:
+        assert self.env is not None
+        obs = self.env.env_method("reset", indices=[env_idx])[0][0]
+        if self._vec_normalize_env is not None:
+            obs = self._vec_normalize_env.normalize_obs(obs)
+        return np.asarray(obs, dtype=np.float32)
+
+    def _collect_episodes(
+        self, tasks: list[Task], params: Params | None, callback: BaseCallback | None = None
+    ) -> tuple[EpisodeBatch, bool]:
+        """
+        Roll out ``episodes_per_task`` trajectories on each task, spreading them over the envs.
+
+        Each env keeps running episodes of its current task (the task sticks across auto-resets) and
+        switches (``set_task`` then an explicit reset) only when that task has no episode left.
+
+        :param tasks: the ``T`` tasks
+        :param params: per-task parameters (every tensor with leading dimension ``T``), or None for ``theta``
+        :param callback: called once per VecEnv step; None during tests
+        :return: the padded episodes and whether training should continue (callback result)
+        """
+        assert self.env is not None and self.max_episode_steps is not None
+        env = self.env
+        n_envs = env.num_envs
+        n_tasks, n_eps, horizon = len(tasks), self.episodes_per_task, self.max_episode_steps
+        obs_dim = self.policy.obs_dim
+        observations = np.zeros((n_tasks, n_eps, horizon, obs_dim), dtype=np.float32)
+        actions = np.zeros((n_tasks, n_eps, horizon, self._act_store_dim), dtype=np.float32)
+        rewards = np.zeros((n_tasks, n_eps, horizon), dtype=np.float32)
+        lengths = np.zeros((n_tasks, n_eps), dtype=np.int64)
+
+        next_episode = np.zeros(n_tasks, dtype=np.int64)  # next unassigned episode of each task
+        env_slot: list[tuple[int, int] | None] = [None] * n_envs  # (task, episode) run by each env
+        env_t = np.zeros(n_envs, dtype=np.int64)
+
+        def pick_task(preferred: int | None) -> int | None:
+            if preferred is not None and next_episode[preferred] < n_eps:
+                return preferred
+            busy = {slot[0] for slot in env_slot if slot is not None}
+            remaining = n_eps - next_episode
+            candidates = [j for j in range(n_tasks) if remaining[j] > 0]
+            if not candidates:
+                return None
+            # a task nobody runs first, then the one with most episodes left
+            return max(candidates, key=lambda j: (j not in busy, remaining[j]))
+
+        # Initial assignment: one task per env, applied by a reset of all envs.
+        for i in range(n_envs):
+            task_idx = pick_task(None)
+            if task_idx is None:
+                break
+            env_slot[i] = (task_idx, int(next_episode[task_idx]))
+            next_episode[task_idx] += 1
+            env.env_method("set_task", tasks[task_idx], indices=[i])
+        obs = np.asarray(env.reset(), dtype=np.float32).reshape(n_envs, obs_dim)
+
+        continue_training = True
+        while any(slot is not None for slot in env_slot):
+            active = [i for i in range(n_envs) if env_slot[i] is not None]
+            with th.no_grad():
+                obs_t = th.as_tensor(obs, device=self.device)
+                if params is None:
+                    raw = self.policy.sample(obs_t)
+                else:
+                    task_of_env = th.as_tensor([slot[0] if slot is not None else 0 for slot in env_slot], device=self.device)
+                    env_params = {name: value[task_of_env] for name, value in params.items()}
+                    raw = self.policy.batched_distribution(obs_t.unsqueeze(1), env_params).sample().squeeze(1)
+            new_obs, step_rewards, dones, infos = env.step(self._env_actions(raw))
+            new_obs = np.asarray(new_obs, dtype=np.float32).reshape(n_envs, obs_dim)
+            raw_np = raw.cpu().numpy().reshape(n_envs, -1)
+
+            for i in active:
+                slot = env_slot[i]
+                assert slot is not None
+                task_idx, ep_idx = slot
+                t = env_t[i]
+                observations[task_idx, ep_idx, t] = obs[i]
+                actions[task_idx, ep_idx, t] = raw_np[i]
+                rewards[task_idx, ep_idx, t] = step_rewards[i]
+                env_t[i] += 1
+                if not (dones[i] or env_t[i] >= horizon):
+                    continue
+                lengths[task_idx, ep_idx] = env_t[i]
+                env_t[i] = 0
+                next_task = pick_task(task_idx)
+                if next_task is None:
+                    env_slot[i] = None
+                    continue
+                env_slot[i] = (next_task, int(next_episode[next_task]))
+                next_episode[next_task] += 1
+                if next_task != task_idx:
+                    env.env_method("set_task", tasks[next_task], indices=[i])
+                    new_obs[i] = self._reset_one(i)
+                elif not dones[i]:  # cut at max_episode_steps before the env's own limit
+                    new_obs[i] = self._reset_one(i)
+                # else: the VecEnv auto-reset already started a new episode of the same (sticky) task
+            obs = new_obs
+
+            self.num_timesteps += len(active)
+            if callback is not None:
+                callback.update_locals(locals())
+                if not callback.on_step():
+                    continue_training = False
+                    break
+        return EpisodeBatch(observations, actions, rewards, lengths), continue_training
+
+    # ------------------------------------------------------------------------------------------
+    # advantages
+    # ------------------------------------------------------------------------------------------
+    def _baseline_features(self, observations: th.Tensor) -> th.Tensor:
+        """
+        Features of the linear baseline: ``[o, o^2, t, t^2, t^3, 1]`` with ``t`` = step / horizon.
+
+        :param observations: shape ``(T, E, H, obs_dim)``
+        :return: shape ``(T, E, H, 2 * obs_dim + 4)``, float64
+        """
+        obs = observations.double().clamp(-10.0, 10.0)
+        n_tasks, n_eps, horizon, _ = obs.shape
+        scale = float(self.max_episode_steps or horizon)
+        time_ = (th.arange(horizon, dtype=th.float64, device=obs.device) / scale).view(1, 1, horizon, 1)
+        time_ = time_.expand(n_tasks, n_eps, horizon, 1)
+        return th.cat([obs, obs**2, time_, time_**2, time_**3, th.ones_like(time_)], dim=-1)
+
+    def compute_advantages(self, batch: EpisodeBatch) -> th.Tensor:
+        """
+        GAE advantages over a linear feature baseline fitted per task by ridge least squares on the
+        discounted returns (episodes end at their last step: no bootstrap, a finite-horizon objective).
+
+        :param batch: the episodes
+        :return: advantages, shape ``(T, E, H)``, 0 after the end of each episode; standardised per task
+            over its valid steps if ``normalize_advantage``
+        """
+        rewards = th.as_tensor(batch.rewards, dtype=th.float64, device=self.device)  # (T, E, H)
+        n_tasks, n_eps, horizon = rewards.shape
+        steps = th.arange(horizon, device=self.device).view(1, 1, horizon)
+        mask = (steps < th.as_tensor(batch.lengths, device=self.device).unsqueeze(-1)).double()  # (T, E, H)
+        rewards = rewards * mask
+
+        returns = th.zeros_like(rewards)
+        running = th.zeros_like(rewards[..., 0])
+        for t in reversed(range(horizon)):
+            running = rewards[..., t] + self.gamma * running
+            returns[..., t] = running
+        returns = returns * mask
+
+        features = self._baseline_features(th.as_tensor(batch.observations, device=self.device))  # (T, E, H, F)
+        x = (features * mask.unsqueeze(-1)).reshape(n_tasks, n_eps * horizon, -1)  # (T, N, F)
+        y = returns.reshape(n_tasks, n_eps * horizon, 1)  # (T, N, 1)
+        xtx = x.transpose(1, 2) @ x  # (T, F, F)
+        xty = x.transpose(1, 2) @ y  # (T, F, 1)
+        eye = th.eye(xtx.shape[-1], dtype=xtx.dtype, device=self.device)
+        reg = self.baseline_reg
+        for _ in range(5):
+            coeffs = th.linalg.lstsq(xtx + reg * eye, xty).solution  # (T, F, 1)
+            if th.isfinite(coeffs).all():
+                break
+            reg *= 10
+        values = (features @ coeffs.unsqueeze(1)).squeeze(-1) * mask  # (T, E, H)
+
+        advantages = th.zeros_like(rewards)
+        last = th.zeros_like(rewards[..., 0])
+        next_value = th.zeros_like(rewards[..., 0])
+        for t in reversed(range(horizon)):
+            delta = rewards[..., t] + self.gamma * next_value - values[..., t]
+            last = (delta + self.gamma * self.gae_lambda * last) * mask[..., t]
+            advantages[..., t] = last
+            next_value = values[..., t]
+        if self.normalize_advantage:
+            count = mask.sum(dim=(1, 2), keepdim=True).clamp(min=1)
+            mean = advantages.sum(dim=(1, 2), keepdim=True) / count
+            var = (((advantages - mean) * mask) ** 2).sum(dim=(1, 2), keepdim=True) / count
+            advantages = (advantages - mean) / (var.sqrt() + 1e-8) * mask
+        return advantages.float()
+
+    def _task_samples(self, batch: EpisodeBatch) -> list[TaskSamples]:
+        """Advantages for ``batch`` and the valid steps of each task as tensors."""
+        advantages = self.compute_advantages(batch)  # (T, E, H)
+        n_tasks, _, horizon = batch.rewards.shape
+        valid = np.arange(horizon)[None, None, :] < batch.lengths[..., None]  # (T, E, H)
+        samples = []
+        for j in range(n_tasks):
+            keep = th.as_tensor(valid[j].reshape(-1), device=self.device)
+            obs = th.as_tensor(batch.observations[j], device=self.device).reshape(-1, self.policy.obs_dim)[keep]
+            act = th.as_tensor(batch.actions[j], device=self.device).reshape(-1, self._act_store_dim)[keep]
+            if not self.policy.continuous:
+                act = act.reshape(-1).long()
+            samples.append(TaskSamples(obs, act, advantages[j].reshape(-1)[keep]))
+        return samples
+
+    # ------------------------------------------------------------------------------------------
+    # inner loop
+    # ------------------------------------------------------------------------------------------
+    def inner_loss(self, params: Params, samples: TaskSamples) -> th.Tensor:
+        """Vanilla policy-gradient loss ``-mean_t log pi(a_t|s_t) A_t`` of one task under ``params``."""
+        log_prob = self.policy.log_prob(samples.observations, samples.actions, params)  # (N,)
+        return -(log_prob * samples.advantages).mean()
+
+    def adapt_params(self, params: Params, samples: TaskSamples, create_graph: bool | None = None) -> Params:
+        """
+        ``num_inner_steps`` gradient steps of :meth:`inner_loss` from ``params``.
+
+        :param params: starting parameters (must require grad)
+        :param samples: the task's pre-adaptation steps
+        :param create_graph: keep the graph of the inner gradient (second-order meta-gradient);
+            defaults to ``not first_order``
+        :return: the adapted parameters (functions of ``params``)
+        """
+        if create_graph is None:
+            create_graph = not self.first_order
+        for _ in range(self.num_inner_steps):
+            loss = self.inner_loss(params, samples)
+            grads = th.autograd.grad(loss, list(params.values()), create_graph=create_graph)
+            params = {name: value - self.inner_lr * grad for (name, value), grad in zip(params.items(), grads, strict=True)}
+        return params
+
+    def _adapt_all(self, samples: list[TaskSamples]) -> Params:
+        """Adapted parameters of every task (detached), stacked along a leading task dimension."""
+        base = {name: p.detach().requires_grad_(True) for name, p in self.policy.meta_parameters().items()}
+        with th.enable_grad():
+            adapted = [self.adapt_params(base, task, create_graph=False) for task in samples]
+        return {name: th.stack([a[name].detach() for a in adapted]) for name in base}
+
+    # ------------------------------------------------------------------------------------------
+    # outer loop (TRPO)
+    # ------------------------------------------------------------------------------------------
+    def _old_policies(self, pre: list[TaskSamples], post: list[TaskSamples]) -> list[OldPolicy]:
+        """The sampling policies of the post-adaptation data, detached."""
+        adapted = self._adapt_all(pre)
+        old = []
+        with th.no_grad():
+            for j, task in enumerate(post):
+                dist = self.policy.distribution(task.observations, {name: value[j] for name, value in adapted.items()})
+                actions = task.actions if self.policy.continuous else task.actions.long()
+                old.append(OldPolicy(dist.log_prob(actions), dist))
+        return old
+
+    def meta_objective(
+        self,
+        params: Params,
+        pre: list[TaskSamples],
+        post: list[TaskSamples],
+        old: list[OldPolicy],
+        create_graph: bool = True,
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """
+        Surrogate and KL of the post-adaptation data, re-adapting from ``params``.
+
+        :param params: meta-parameters (require grad)
+        :param pre: pre-adaptation steps per task (inner loop)
+        :param post: post-adaptation steps per task (outer loss)
+        :param old: the sampling policies of ``post``
+        :param create_graph: keep the graph of the inner gradient (only if not ``first_order``)
+        :return: mean over tasks of ``mean_t ratio_t A_t`` and of ``mean_t KL(old || new)``
+        """
+        surrogates, kls = [], []
+        for pre_j, post_j, old_j in zip(pre, post, old, strict=True):
+            adapted = self.adapt_params(params, pre_j, create_graph=create_graph and not self.first_order)
+            dist = self.policy.distribution(post_j.observations, adapted)
+            log_prob = dist.log_prob(post_j.actions)
+            ratio = th.exp(log_prob - old_j.log_prob)
+            surrogates.append((ratio * post_j.advantages).mean())
+            kls.append(self.policy.kl(old_j.distribution, dist).mean())
+        return th.stack(surrogates).mean(), th.stack(kls).mean()
+
+    def meta_gradient(self, pre: list[TaskSamples], post: list[TaskSamples]) -> th.Tensor:
+        """Flat gradient of the surrogate w.r.t. the meta-parameters at the current parameters."""
+        params = self.policy.meta_parameters()
+        old = self._old_policies(pre, post)
+        surrogate, _ = self.meta_objective(params, pre, post, old)
+        return parameters_to_vector(th.autograd.grad(surrogate, list(params.values())))
+
+    def trpo_step(self, pre: list[TaskSamples], post: list[TaskSamples]) -> TRPOInfo:
+        """
+        One TRPO update of the meta-parameters.
+
+        :param pre: pre-adaptation steps per task
+        :param post: post-adaptation steps per task (sampled with the adapted parameters)
+        :return: surrogate before/after, KL, step size, backtracks, acceptance
+        """
+        params = self.policy.meta_parameters()
+        values = list(params.values())
+        old = self._old_policies(pre, post)
+        surrogate, kl = self.meta_objective(params, pre, post, old)
+        grad = parameters_to_vector(th.autograd.grad(surrogate, values, retain_graph=True))
+        grad_kl = parameters_to_vector(th.autograd.grad(kl, values, create_graph=True))
+
+        def fisher_vector_product(vector: th.Tensor) -> th.Tensor:
+            hvp = th.autograd.grad(grad_kl @ vector, values, retain_graph=True)
+            return parameters_to_vector(hvp).detach() + self.cg_damping * vector
+
+        direction = conjugate_gradient(fisher_vector_product, grad.detach(), self.cg_iters)
+        shs = float(direction @ fisher_vector_product(direction))
+        surrogate_before = float(surrogate)
+        theta_old = parameters_to_vector(values).detach()
+        if not np.isfinite(shs) or shs <= 0:
+            return TRPOInfo(surrogate_before, surrogate_before, 0.0, 0.0, 0, False)
+        full_step = np.sqrt(2.0 * self.max_kl / shs) * direction
+
+        for n_backtracks in range(self.ls_max_steps):
+            fraction = self.ls_backtrack_ratio**n_backtracks
+            candidate = theta_old + fraction * full_step
+            vector_to_parameters(candidate, values)
+            with th.enable_grad():
+                new_surrogate, new_kl = self.meta_objective(params, pre, post, old, create_graph=False)
+            if float(new_surrogate) > surrogate_before and float(new_kl) <= self.max_kl:
+                return TRPOInfo(
+                    surrogate_before,
+                    float(new_surrogate),
+                    float(new_kl),
+                    float(fraction * np.sqrt(2.0 * self.max_kl / shs)),
+                    n_backtracks,
+                    True,
+                )
+        vector_to_parameters(theta_old, values)
+        return TRPOInfo(surrogate_before, surrogate_before, 0.0, 0.0, self.ls_max_steps, False)
+
+    # ------------------------------------------------------------------------------------------
+    # training loop
+    # ------------------------------------------------------------------------------------------
+    @staticmethod
+    def _episode_returns(batch: EpisodeBatch) -> np.ndarray:
+        return batch.rewards.sum(axis=-1).reshape(-1)  # (T * E,)
+
+    def _train_iteration(self, callback: BaseCallback) -> bool:
+        assert self.train_tasks is not None and self._task_rng is not None
+        n_train = len(self.train_tasks)
+        task_ids = self._task_rng.choice(n_train, size=self.meta_batch_size, replace=self.meta_batch_size > n_train)
+        tasks = [self.train_tasks[j] for j in task_ids]
+
+        callback.on_rollout_start()
+        pre_batch, continue_training = self._collect_episodes(tasks, None, callback)
+        if not continue_training:
+            return False
+        pre = self._task_samples(pre_batch)
+        adapted = self._adapt_all(pre)
+        post_batch, continue_training = self._collect_episodes(tasks, adapted, callback)
+        if not continue_training:
+            return False
+        callback.on_rollout_end()
+        post = self._task_samples(post_batch)
+
+        info = self.trpo_step(pre, post)
+        self._n_updates += 1
+
+        pre_returns, post_returns = self._episode_returns(pre_batch), self._episode_returns(post_batch)
+        assert self.ep_info_buffer is not None
+        lengths = post_batch.lengths.reshape(-1)
+        self.ep_info_buffer.extend({"r": float(r), "l": int(n)} for r, n in zip(post_returns, lengths, strict=True))
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/pre_adaptation_return", float(pre_returns.mean()))
+        self.logger.record("train/post_adaptation_return", float(post_returns.mean()))
+        self.logger.record("train/surrogate", info.surrogate_after)
+        self.logger.record("train/surrogate_improvement", info.surrogate_after - info.surrogate_before)
+        self.logger.record("train/kl", info.kl)
+        self.logger.record("train/step_size", info.step_size)
+        self.logger.record("train/backtracks", info.n_backtracks)
+        self.logger.record("train/accepted", float(info.accepted))
+        if self.policy.continuous:
+            self.logger.record("train/std", float(self.policy.log_std.exp().mean()))
+        return True
+
+    def dump_logs(self) -> None:
+        """Write the logs (rollout statistics of the post-adaptation episodes and timings)."""
+        time_elapsed = max((time.time_ns() - self.start_time) / 1e9, sys.float_info.epsilon)
+        fps = int((self.num_timesteps - self._num_timesteps_at_start) / time_elapsed)
+        if self.ep_info_buffer:
+            self.logger.record("rollout/ep_rew_mean", safe_mean([ep_info["r"] for ep_info in self.ep_info_buffer]))
+            self.logger.record("rollout/ep_len_mean", safe_mean([ep_info["l"] for ep_info in self.ep_info_buffer]))
+        self.logger.record("time/fps", fps)
+        self.logger.record("time/time_elapsed", int(time_elapsed), exclude="tensorboard")
+        self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        self.logger.dump(step=self.num_timesteps)
+
+    def learn(
+        self: SelfMAML,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str = "MAML",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfMAML:
+        """
+        Meta-train.
+
+        :param total_timesteps: env steps to train on (pre- and post-adaptation steps both count;
+            one meta-iteration takes ``2 * meta_batch_size * episodes_per_task * max_episode_steps`` at most)
+        :param callback: callback(s) called once per VecEnv step
+        :param log_interval: meta-iterations between log dumps
+        :param tb_log_name: name of the TensorBoard run
+        :param reset_num_timesteps: reset the timestep counter
+        :param progress_bar: display a progress bar (tqdm and rich)
+        :return: the trained model
+        """
+        total_steps, callback = self._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        callback.on_training_start(locals(), globals())
+        self.reset_adaptation()
+        while self.num_timesteps < total_steps:
+            self._update_current_progress_remaining(self.num_timesteps, total_steps)
+            if not self._train_iteration(callback):
+                break
+            if log_interval is not None and self._n_updates % log_interval == 0:
+                self.dump_logs()
+        callback.on_training_end()
+        return self
+
+    # ------------------------------------------------------------------------------------------
+    # adaptation API (meta-test)
+    # ------------------------------------------------------------------------------------------
+    def reset_adaptation(self) -> None:
+        """Forget the current task: drop the observed trajectories and act with the meta-learned parameters."""
+        self._adapt_episodes = []
+        self._current_episode = ([], [], [])
+        self.policy.adapted_params = None
+        self.policy.last_raw_actions = None
+
+    def observe(self, obs: np.ndarray, action: np.ndarray, reward: float, next_obs: np.ndarray, done: bool) -> None:
+        """
+        Record one transition of the current task.
+
+        :param obs: observation, shape ``obs_shape`` (or ``(1, *obs_shape)``)
+        :param action: the action sent to the env (as returned by :meth:`predict`)
+        :param reward: the reward
+        :param next_obs: next observation (unused: the baseline needs no bootstrap)
+        :param done: end of the trajectory (terminated or truncated)
+        """
+        obs_flat = np.asarray(obs, dtype=np.float32).reshape(-1)
+        if obs_flat.shape[0] != self.policy.obs_dim:
+            raise ValueError(f"observe: expected one observation of size {self.policy.obs_dim}, got shape {np.shape(obs)}")
+        if self.policy.continuous:
+            scaled = self.policy.scale_action(np.asarray(action, dtype=np.float32).reshape(self.action_space.shape))
+            raw = self.policy.last_raw_actions
+            # Recover the unclipped sample behind the (clipped) env action when it is the one predict() returned.
+            if raw is not None and raw.shape[0] == 1:
+                raw_np = raw.cpu().numpy().reshape(-1)
+                if np.allclose(np.clip(raw_np, -1.0, 1.0), scaled, atol=1e-5):
+                    scaled = raw_np
+            stored = np.asarray(scaled, dtype=np.float32).reshape(-1)
+        else:
+            stored = np.asarray([int(np.asarray(action).reshape(-1)[0])], dtype=np.float32)
+        observations, actions, rewards = self._current_episode
+        observations.append(obs_flat)
+        actions.append(stored)
+        rewards.append(float(np.asarray(reward).reshape(-1)[0]))
+        if bool(np.asarray(done).reshape(-1)[0]):
+            self._adapt_episodes.append(self._current_episode)
+            self._current_episode = ([], [], [])
+
+    def adapt(self) -> None:
+        """
+        Inner update(s) from the meta-learned parameters on every trajectory observed since
+        :meth:`reset_adaptation` (an unfinished one counts as ending at its last step), as in training.
+        With nothing observed, the policy stays the meta-learned one.
+        """
+        episodes = [*self._adapt_episodes]
+        if self._current_episode[0]:
+            episodes.append(self._current_episode)
+        if not episodes:
+            self.policy.adapted_params = None
+            return
+        horizon = max(len(ep[2]) for ep in episodes)
+        n_eps = len(episodes)
+        observations = np.zeros((1, n_eps, horizon, self.policy.obs_dim), dtype=np.float32)
+        actions = np.zeros((1, n_eps, horizon, self._act_store_dim), dtype=np.float32)
+        rewards = np.zeros((1, n_eps, horizon), dtype=np.float32)
+        lengths = np.zeros((1, n_eps), dtype=np.int64)
+        for e, (ep_obs, ep_actions, ep_rewards) in enumerate(episodes):
+            n = len(ep_rewards)
+            observations[0, e, :n] = np.stack(ep_obs)
+            actions[0, e, :n] = np.stack(ep_actions)
+            rewards[0, e, :n] = ep_rewards
+            lengths[0, e] = n
+        samples = self._task_samples(EpisodeBatch(observations, actions, rewards, lengths))
+        adapted = self._adapt_all(samples)
+        self.policy.adapted_params = {name: value[0] for name, value in adapted.items()}
