@@ -572,7 +572,7 @@ class MAML(BaseAlgorithm):
 
         direction = conjugate_gradient(fisher_vector_product, grad.detach(), self.cg_iters)
         shs = float(direction @ fisher_vector_product(direction))
-        surrogate_before = float(surrogate)
+        surrogate_before = float(surrogate.detach())
         theta_old = parameters_to_vector(values).detach()
         if not np.isfinite(shs) or shs <= 0:
             return TRPOInfo(surrogate_before, surrogate_before, 0.0, 0.0, 0, False)
@@ -584,6 +584,7 @@ class MAML(BaseAlgorithm):
             vector_to_parameters(candidate, values)
             with th.enable_grad():
                 new_surrogate, new_kl = self.meta_objective(params, pre, post, old, create_graph=False)
+            new_surrogate, new_kl = new_surrogate.detach(), new_kl.detach()
             if float(new_surrogate) > surrogate_before and float(new_kl) <= self.max_kl:
                 return TRPOInfo(
                     surrogate_before,
@@ -638,7 +639,7 @@ class MAML(BaseAlgorithm):
         self.logger.record("train/backtracks", info.n_backtracks)
         self.logger.record("train/accepted", float(info.accepted))
         if self.policy.continuous:
-            self.logger.record("train/std", float(self.policy.log_std.exp().mean()))
+            self.logger.record("train/std", float(self.policy.log_std.detach().exp().mean()))
         return True
 
     def dump_logs(self) -> None:
