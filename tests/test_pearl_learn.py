@@ -83,7 +83,9 @@ def test_termination_vs_truncation_and_cost(tiny_kwargs: dict[str, Any]) -> None
 
 
 def test_time_limit_is_not_terminal(tiny_kwargs: dict[str, Any]) -> None:
-    model = PEARL("MlpPolicy", "PointGoalMeta-v0", seed=0, **{k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"})
+    model = PEARL(
+        "MlpPolicy", "PointGoalMeta-v0", seed=0, **{k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"}
+    )
     model.learn(240)
     assert model.replay_buffer.rl.dones.sum() == 0.0  # 20-step episodes end by truncation only
 
@@ -133,7 +135,9 @@ def test_save_load_equivalence(tmp_path: Path, discrete: bool, tiny_kwargs: dict
     for m in (model, loaded):
         m.reset_adaptation()
         for t in range(5):
-            m.observe(np.array([0.1 * t, 0.0]), 1 if discrete else np.array([0.05, -0.05]), -1.0 + t, np.array([0.1, 0.2]), False)
+            m.observe(
+                np.array([0.1 * t, 0.0]), 1 if discrete else np.array([0.05, -0.05]), -1.0 + t, np.array([0.1, 0.2]), False
+            )
     assert all(th.allclose(a, b) for a, b in zip(model.infer_posterior(), loaded.infer_posterior()))
     # Buffers round trip, and training goes on with the env set again.
     loaded.load_replay_buffer(tmp_path / "buffer.pkl")

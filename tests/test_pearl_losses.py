@@ -16,7 +16,9 @@ from tests.conftest import make_discrete_env
 def _model(kind: str, discrete: bool, tiny_kwargs: dict[str, Any]) -> PEARLPlus:
     env = make_discrete_env() if discrete else gym.make("PointGoalMeta-v0")
     if kind == "pearl":
-        model: PEARLPlus = PEARL("MlpPolicy", env, seed=0, **{k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"})
+        model: PEARLPlus = PEARL(
+            "MlpPolicy", env, seed=0, **{k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"}
+        )
     else:
         model = PEARLPlus("MlpPolicy", env, seed=0, prior_critic=kind, **tiny_kwargs)
     model.learn(4 * tiny_kwargs["num_initial_steps"])  # fills every task's buffers

@@ -164,7 +164,9 @@ class PEARLPolicy(BasePolicy):
     :param prior_critic: ``"separate"`` (PEARL+: extra critic Q~(s, a, z0)), ``"shared"`` (ablation
         PEARL+ (w/o): the prior term uses Q(s, a, z0)) or ``"none"`` (PEARL)
     :param prior_critic_arch: hidden sizes of the prior critic (paper: [300]*3, ablation [100]*3)
-    :param n_critics: number of Q networks in each critic
+    :param n_critics: number of Q networks of the critic (twin Q: 2)
+    :param prior_n_critics: number of Q networks of the prior critic; the paper adds "a new Q-network"
+        Q~ (one network, Section IV), which is the default; 2 gives it a twin-Q minimum as well
     :param optimizer_class: optimizer
     :param optimizer_kwargs: extra optimizer arguments
     """
@@ -182,6 +184,7 @@ class PEARLPolicy(BasePolicy):
         prior_critic: str = "separate",
         prior_critic_arch: list[int] | None = None,
         n_critics: int = 2,
+        prior_n_critics: int = 1,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
     ):
@@ -208,6 +211,7 @@ class PEARLPolicy(BasePolicy):
         self.prior_critic_mode = prior_critic
         self.prior_critic_arch = list(prior_critic_arch) if prior_critic_arch is not None else [300, 300, 300]
         self.n_critics = n_critics
+        self.prior_n_critics = prior_n_critics
         self.discrete = isinstance(action_space, spaces.Discrete)
         self.obs_dim = int(observation_space.shape[0])
         self.action_dim = (
@@ -222,11 +226,11 @@ class PEARLPolicy(BasePolicy):
         """Size of one context transition: s, a (one-hot if Discrete), r[, s']."""
         return self.obs_dim * (2 if self.use_next_obs_in_context else 1) + self.action_dim + 1
 
-    def _make_critic(self, net_arch: list[int]) -> LatentCritic:
+    def _make_critic(self, net_arch: list[int], n_critics: int) -> LatentCritic:
         obs_z = self.obs_dim + self.latent_dim
         if self.discrete:
-            return LatentCritic(obs_z, self.action_dim, net_arch, self.n_critics, self.activation_fn)
-        return LatentCritic(obs_z + self.action_dim, 1, net_arch, self.n_critics, self.activation_fn)
+            return LatentCritic(obs_z, self.action_dim, net_arch, n_critics, self.activation_fn)
+        return LatentCritic(obs_z + self.action_dim, 1, net_arch, n_critics, self.activation_fn)
 
     def _build(self, lr_schedule: Schedule) -> None:
         obs_z = self.obs_dim + self.latent_dim
@@ -236,15 +240,15 @@ class PEARLPolicy(BasePolicy):
             self.actor = CategoricalActor(obs_z, self.action_dim, self.net_arch, self.activation_fn)
         else:
             self.actor = SquashedGaussianActor(obs_z, self.action_dim, self.net_arch, self.activation_fn)
-        self.critic = self._make_critic(self.net_arch)
-        self.critic_target = self._make_critic(self.net_arch)
+        self.critic = self._make_critic(self.net_arch, self.n_critics)
+        self.critic_target = self._make_critic(self.net_arch, self.n_critics)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.critic_target.requires_grad_(False)
         self.prior_critic: LatentCritic | None = None
         self.prior_critic_target: LatentCritic | None = None
         if self.prior_critic_mode == "separate":
-            self.prior_critic = self._make_critic(self.prior_critic_arch)
-            self.prior_critic_target = self._make_critic(self.prior_critic_arch)
+            self.prior_critic = self._make_critic(self.prior_critic_arch, self.prior_n_critics)
+            self.prior_critic_target = self._make_critic(self.prior_critic_arch, self.prior_n_critics)
             self.prior_critic_target.load_state_dict(self.prior_critic.state_dict())
             self.prior_critic_target.requires_grad_(False)
 
@@ -276,6 +280,7 @@ class PEARLPolicy(BasePolicy):
             prior_critic=self.prior_critic_mode,
             prior_critic_arch=self.prior_critic_arch,
             n_critics=self.n_critics,
+            prior_n_critics=self.prior_n_critics,
             optimizer_class=self.optimizer_class,
             optimizer_kwargs=self.optimizer_kwargs,
         )
