@@ -129,6 +129,14 @@ def test_advantages_gae_and_linear_baseline() -> None:
     np.testing.assert_allclose(model.compute_advantages(full).numpy(), 0.0, atol=1e-3)
 
 
+def test_task_lists() -> None:
+    model = make_model(n_envs=1)
+    expected = gym.make("PointGoalMeta-v0").unwrapped.sample_tasks(8 + 4, seed=0)  # type: ignore[attr-defined]
+    assert model.train_tasks == expected[:8] and model.test_tasks == expected[8:]
+    explicit = make_model(n_envs=1, train_tasks=expected[:2], test_tasks=expected[2:3])
+    assert explicit.train_tasks == expected[:2] and explicit.test_tasks == expected[2:3]
+
+
 def test_sampler_assigns_tasks_and_counts_steps() -> None:
     # 3 envs for 4 tasks and episodes cut at 7 < the registered 20 steps
     model = make_model(n_envs=3, max_episode_steps=7, episodes_per_task=5)

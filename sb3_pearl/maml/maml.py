@@ -119,8 +119,11 @@ class MAML(BaseAlgorithm):
     :param meta_batch_size: tasks per meta-iteration
     :param episodes_per_task: trajectories per task, both before and after adaptation
     :param max_episode_steps: episode length; ``None`` uses the env's registered time limit
-    :param n_train_tasks: size of the training task list (``env.sample_tasks(n, seed)``)
-    :param n_test_tasks: size of the held-out test task list (``env.sample_tasks(n, seed + 1)``)
+    :param n_train_tasks: training tasks: the first ``n_train_tasks`` of ``env.sample_tasks(n_train_tasks +
+        n_test_tasks, seed)`` (the same draw as PEARL / PEARL+, so a seed gives every algorithm the same tasks)
+    :param n_test_tasks: held-out test tasks: the rest of that draw
+    :param train_tasks: explicit training tasks (overrides the draw)
+    :param test_tasks: explicit test tasks (overrides the draw)
     :param gamma: discount factor
     :param gae_lambda: GAE lambda (1: Monte-Carlo returns minus the baseline)
     :param normalize_advantage: standardise the advantages per task (inner and outer losses)
@@ -154,6 +157,8 @@ class MAML(BaseAlgorithm):
         max_episode_steps: int | None = None,
         n_train_tasks: int = 100,
         n_test_tasks: int = 30,
+        train_tasks: list[Task] | None = None,
+        test_tasks: list[Task] | None = None,
         gamma: float = 0.99,
         gae_lambda: float = 1.0,
         normalize_advantage: bool = True,
@@ -210,8 +215,8 @@ class MAML(BaseAlgorithm):
         self.cg_damping = cg_damping
         self.ls_backtrack_ratio = ls_backtrack_ratio
         self.ls_max_steps = ls_max_steps
-        self.train_tasks: list[Task] | None = None
-        self.test_tasks: list[Task] | None = None
+        self.train_tasks: list[Task] = list(train_tasks) if train_tasks is not None else []
+        self.test_tasks: list[Task] = list(test_tasks) if test_tasks is not None else []
         self._task_rng: np.random.Generator | None = None
         # Adaptation state (meta-test): never saved
         self._adapt_episodes: list[tuple[list[np.ndarray], list[np.ndarray], list[float]]] = []
@@ -233,6 +238,8 @@ class MAML(BaseAlgorithm):
             )
         if not isinstance(self.observation_space, spaces.Box):
             raise ValueError(f"MAML supports Box observation spaces only, got {self.observation_space}")
+        if self._vec_normalize_env is not None:
+            raise ValueError("VecNormalize is not supported: per-env task switches reset envs below the VecEnv wrappers")
         missing = [name for name in TASK_METHODS if not env.has_attr(name)]
         if missing:
             raise ValueError(
@@ -255,10 +262,11 @@ class MAML(BaseAlgorithm):
                 if limit is None:
                     raise ValueError("The env has no registered time limit: pass max_episode_steps to MAML")
                 self.max_episode_steps = int(limit)
-            if self.train_tasks is None or self.test_tasks is None:
-                task_seed = int(self.seed) if self.seed is not None else int(self._task_rng.integers(2**31 - 1))
-                self.train_tasks = self.env.env_method("sample_tasks", self.n_train_tasks, task_seed, indices=[0])[0]
-                self.test_tasks = self.env.env_method("sample_tasks", self.n_test_tasks, task_seed + 1, indices=[0])[0]
+            if not self.train_tasks:
+                tasks = self.env.env_method("sample_tasks", self.n_train_tasks + self.n_test_tasks, self.seed, indices=[0])[0]
+                self.train_tasks = list(tasks[: self.n_train_tasks])
+                if not self.test_tasks:
+                    self.test_tasks = list(tasks[self.n_train_tasks :])
         self.reset_adaptation()
 
     def _excluded_save_params(self) -> list[str]:
@@ -283,8 +291,6 @@ class MAML(BaseAlgorithm):
     def _reset_one(self, env_idx: int) -> np.ndarray:
         assert self.env is not None
         obs = self.env.env_method("reset", indices=[env_idx])[0][0]
-        if self._vec_normalize_env is not None:
-            obs = self._vec_normalize_env.normalize_obs(obs)
         return np.asarray(obs, dtype=np.float32)
 
     def _collect_episodes(
@@ -605,7 +611,9 @@ class MAML(BaseAlgorithm):
         return batch.rewards.sum(axis=-1).reshape(-1)  # (T * E,)
 
     def _train_iteration(self, callback: BaseCallback) -> bool:
-        assert self.train_tasks is not None and self._task_rng is not None
+        assert self._task_rng is not None
+        if not self.train_tasks:
+            raise ValueError("MAML has no training tasks: pass an env following the task protocol or train_tasks")
         n_train = len(self.train_tasks)
         task_ids = self._task_rng.choice(n_train, size=self.meta_batch_size, replace=self.meta_batch_size > n_train)
         tasks = [self.train_tasks[j] for j in task_ids]
