@@ -71,7 +71,8 @@ def test_learn_discrete(n_envs: int, tiny_kwargs: dict[str, Any]) -> None:
 def test_termination_vs_truncation_and_cost(tiny_kwargs: dict[str, Any]) -> None:
     """Hazard entries (true terminations) store done=1; time-limit ends store done=0."""
     model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=1, **{**tiny_kwargs, "num_initial_steps": 300})
-    # Drive straight up (0.07 per step: positions 0.07, 0.14, 0.21 -> inside, clear of the boundary) into the hazard: the actor is replaced by a scripted policy for collection.
+    # A scripted collection policy drives straight up into the hazard, 0.07 per step:
+    # positions 0.07, 0.14, 0.21 (inside), clear of the hazard boundary.
     model.policy.act = lambda obs, z, deterministic=False: th.tensor([[0.0, 0.7]]).expand(obs.shape[0], -1)  # type: ignore[method-assign]
     model.learn(300)
     rl = model.replay_buffer.rl

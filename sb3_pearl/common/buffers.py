@@ -38,7 +38,7 @@ class TaskReplayBuffer:
         self.n_tasks = n_tasks
         self.capacity = capacity
         self.obs_dim = int(observation_space.shape[0])
-        self.action_dim = 1 if isinstance(action_space, spaces.Discrete) else int(np.prod(action_space.shape))
+        self.action_dim = 1 if isinstance(action_space, spaces.Discrete) else int(np.prod(action_space.shape or ()))
         self.observations = np.zeros((n_tasks, capacity, self.obs_dim), dtype=np.float32)
         self.next_observations = np.zeros((n_tasks, capacity, self.obs_dim), dtype=np.float32)
         self.actions = np.zeros((n_tasks, capacity, self.action_dim), dtype=np.float32)

@@ -43,9 +43,9 @@ class PolicyEval(NamedTuple):
 def evaluate_policy(actor: nn.Module, x: th.Tensor) -> PolicyEval:
     """Sample (Box) or enumerate (Discrete) the actor's actions on inputs ``x`` (N, in_dim)."""
     if hasattr(actor, "probs"):
-        probs, log_probs = actor.probs(x)
+        probs, log_probs = actor.probs(x)  # type: ignore[operator]
         return PolicyEval(None, probs, log_probs)
-    actions, log_prob = actor.action_log_prob(x)
+    actions, log_prob = actor.action_log_prob(x)  # type: ignore[operator]
     return PolicyEval(actions, None, log_prob.reshape(-1, 1))
 
 

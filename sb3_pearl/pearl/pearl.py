@@ -531,20 +531,20 @@ class PEARLPlus(OffPolicyAlgorithm):
             env_actions = actions if self.policy.discrete else self.policy.unscale_action(actions)
             new_obs, rewards, dones, infos = env.step(env_actions)
 
-            for slot in active:
-                segment = segments[slot]
-                assert segment is not None
-                next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]
+            for slot in active.tolist():
+                current = segments[slot]
+                assert current is not None
+                next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]  # type: ignore[call-overload,index]
                 terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
                 stored_action = actions[slot].reshape(-1)
-                self.replay_buffer.rl.add(segment.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
-                if segment.add_to_context:
-                    self.replay_buffer.context.add(segment.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
+                self.replay_buffer.rl.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
+                if current.add_to_context:
+                    self.replay_buffer.context.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
                 remaining[slot] -= 1
                 if dones[slot]:
                     self._episode_num += 1
                     if remaining[slot] > 0:
-                        z[slot] = self._draw_z(segment)  # z is drawn once per trajectory
+                        z[slot] = self._draw_z(current)  # z is drawn once per trajectory
             collected += len(active)
             self.num_timesteps += len(active)
             obs = np.array(new_obs, dtype=np.float32)

@@ -49,7 +49,8 @@ class ContextEncoder(nn.Module):
 
     def posterior(self, context: th.Tensor, mask: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
         """q(z | c) per task: ``context`` (T, N, D) -> means and variances, each (T, L)."""
-        return product_of_gaussians(*self(context), mask=mask)
+        mu, var = self(context)
+        return product_of_gaussians(mu, var, mask=mask)
 
 
 class SquashedGaussianActor(nn.Module):
