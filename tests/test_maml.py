@@ -101,6 +101,18 @@ def test_inner_gradient_linear_categorical_closed_form() -> None:
     th.testing.assert_close(adapted["mlp.0.bias"], bias - 0.5 * grad_b)
 
 
+def test_batched_distribution_matches_functional_call() -> None:
+    policy = make_model(n_envs=1).policy
+    gen = th.Generator().manual_seed(2)
+    stacked = {name: p.detach() + 0.1 * th.randn((3, *p.shape), generator=gen) for name, p in policy.meta_parameters().items()}
+    obs = th.randn(3, 5, 2, generator=gen)
+    batched = policy.batched_distribution(obs, stacked)
+    for k in range(3):
+        single = policy.distribution(obs[k], {name: value[k] for name, value in stacked.items()})
+        th.testing.assert_close(batched.mean[k], single.mean)
+        th.testing.assert_close(batched.stddev[k], single.stddev)
+
+
 def test_advantages_gae_and_linear_baseline() -> None:
     model = make_model(n_envs=1, normalize_advantage=False, gamma=0.9)
     rng = np.random.default_rng(0)

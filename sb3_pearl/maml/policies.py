@@ -135,7 +135,21 @@ class MAMLPolicy(BasePolicy):
         :param params: name -> tensor dict, every tensor with a leading dimension ``K``
         :return: a distribution with batch shape ``(K, B)``
         """
-        out, log_std = vmap(lambda p, o: functional_call(self, p, (o,)))(params, obs.float())
+        obs = obs.float()
+        if type(self).forward is MAMLPolicy.forward and all(
+            isinstance(m, nn.Linear) or not any(True for _ in m.parameters()) for m in self.mlp
+        ):
+            # fast path for the Linear/activation stack built here: one batched matmul per layer
+            out = obs
+            for idx, module in enumerate(self.mlp):
+                if isinstance(module, nn.Linear):
+                    weight, bias = params[f"mlp.{idx}.weight"], params[f"mlp.{idx}.bias"]  # (K, out, in), (K, out)
+                    out = th.baddbmm(bias.unsqueeze(1), out, weight.transpose(1, 2))  # (K, B, out)
+                else:
+                    out = module(out)
+            log_std = params["log_std"] if self.continuous else out.new_zeros(0)
+        else:
+            out, log_std = vmap(lambda p, o: functional_call(self, p, (o,)))(params, obs)
         if self.continuous:
             log_std = log_std.unsqueeze(1)  # (K, 1, act_dim)
         return self.make_distribution(out, log_std)
