@@ -248,6 +248,7 @@ class MAML(BaseAlgorithm):
             )
 
     def _setup_model(self) -> None:
+        self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         self.policy = self.policy_class(self.observation_space, self.action_space, **self.policy_kwargs)  # type: ignore[assignment]
         self.policy = self.policy.to(self.device)
