@@ -1,0 +1,90 @@
+"""The point task families: env contract, task protocol, rewards and the hazard."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3.common.env_checker import check_env
+
+import sb3_pearl  # noqa: F401
+
+
+@pytest.mark.parametrize("env_id", ["PointGoalMeta-v0", "SafePointGoalMeta-v0"])
+def test_check_env_and_task_protocol(env_id: str) -> None:
+    env = gym.make(env_id)
+    check_env(env.unwrapped, warn=False)
+    base = env.unwrapped
+    tasks = base.sample_tasks(5, seed=3)
+    assert tasks == base.sample_tasks(5, seed=3) and tasks != base.sample_tasks(5, seed=4)
+    base.set_task(tasks[1])
+    assert base.get_task() == tasks[1]
+    for _ in range(2):  # sticky across resets
+        env.reset()
+        assert base.get_task() == tasks[1]
+    _, _, _, _, info = env.step(np.zeros(2, dtype=np.float32))
+    assert info["cost"] == 0.0
+
+
+def test_point_goal_reward_and_ranges() -> None:
+    env = gym.make("PointGoalMeta-v0")
+    base = env.unwrapped
+    goals = np.array([t["goal"] for t in base.sample_tasks(200, seed=0)])
+    assert goals.min() >= -1.0 and goals.max() <= 1.0
+    base.set_task({"goal": [0.3, -0.4]})
+    env.reset()
+    obs, reward, *_ = env.step(np.array([0.1, 0.5], dtype=np.float32))  # clipped to (0.1, 0.1)
+    np.testing.assert_allclose(obs, [0.1, 0.1])
+    assert reward == pytest.approx(-np.hypot(0.2, 0.5))
+    shifted = gym.make("PointGoalMeta-v0", goal_low=2.0, goal_high=3.0).unwrapped.sample_tasks(10, seed=0)
+    assert all(2.0 <= g <= 3.0 for t in shifted for g in t["goal"])
+    with pytest.raises(ValueError, match="goal_low"):
+        gym.make("PointGoalMeta-v0", goal_low=1.0, goal_high=1.0)
+
+
+def test_set_task_takes_effect_at_reset_and_validates() -> None:
+    env = gym.make("PointGoalMeta-v0")
+    base = env.unwrapped
+    base.set_task({"goal": [1.0, 0.0]})
+    env.reset()
+    base.set_task({"goal": [-1.0, 0.0]})
+    _, reward, *_ = env.step(np.zeros(2, dtype=np.float32))
+    assert reward == pytest.approx(-1.0)  # still the old goal until reset
+    env.reset()
+    _, reward, *_ = env.step(np.array([0.1, 0.0], dtype=np.float32))
+    assert reward == pytest.approx(-1.1)
+    with pytest.raises(ValueError, match="task keys"):
+        base.set_task({"velocity": 1.0})
+
+
+def test_safe_point_goals_on_arc_and_hazard_ends_episode() -> None:
+    env = gym.make("SafePointGoalMeta-v0")
+    base = env.unwrapped
+    goals = np.array([t["goal"] for t in base.sample_tasks(100, seed=0)])
+    np.testing.assert_allclose(np.linalg.norm(goals, axis=1), 1.0)
+    angles = np.arctan2(goals[:, 1], goals[:, 0])
+    assert angles.min() >= np.pi / 6 - 1e-9 and angles.max() <= 5 * np.pi / 6 + 1e-9
+    base.set_task({"goal": [0.0, 1.0]})
+    env.reset()
+    rewards, costs = [], []
+    for t in range(1, 4):  # straight up at 0.07 per step: 0.07, 0.14 outside, 0.21 inside the hazard
+        _, reward, terminated, truncated, info = env.step(np.array([0.0, 0.07], dtype=np.float32))
+        rewards.append(reward)
+        costs.append(info["cost"])
+        assert terminated == (t == 3) and not truncated
+    assert costs == [0.0, 0.0, 1.0]
+    # the entering step is penalised by 2.0 per skipped step (30 - 3 = 27 steps)
+    assert rewards[2] == pytest.approx(-(1.0 - 0.21) - 2.0 * 27)
+    # a detour around the hazard is safe: right, then up, then left
+    env.reset()
+    for action in [(0.1, 0.0)] * 4 + [(0.0, 0.1)] * 9 + [(-0.1, 0.0)] * 4:
+        _, _, terminated, _, info = env.step(np.array(action, dtype=np.float32))
+        assert not terminated and info["cost"] == 0.0
+
+
+def test_rendering_rgb_array() -> None:
+    env = gym.make("SafePointGoalMeta-v0", render_mode="rgb_array")
+    env.reset()
+    frame = env.render()
+    assert frame.shape == (128, 128, 3) and frame.dtype == np.uint8
+    assert (frame == np.array([220, 60, 60], dtype=np.uint8)).all(axis=-1).sum() > 50  # the hazard is drawn
