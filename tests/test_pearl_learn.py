@@ -228,3 +228,12 @@ def test_pearl_has_no_prior_critic(tiny_kwargs: dict[str, Any]) -> None:
     assert not any("prior" in name for name in model.policy.state_dict())
     shared = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, prior_critic="shared", **kwargs)
     assert shared.prior_critic is None and shared.prior_coef == 0.1
+
+
+def test_twin_critics_have_distinct_initialisations(tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, prior_n_critics=2, **tiny_kwargs)
+    for critic in (model.critic, model.prior_critic):
+        assert critic is not None and len(critic.q_networks) == 2
+        first, second = (q[0].weight for q in critic.q_networks)
+        assert not th.equal(first, second)
+    assert len(PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **tiny_kwargs).prior_critic.q_networks) == 1

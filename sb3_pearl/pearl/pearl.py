@@ -85,6 +85,7 @@ class PEARLPlus(OffPolicyAlgorithm):
     :param prior_coef: weight ``alpha`` of the prior term (paper default 0.1); 0 gives PEARL's actor
     :param prior_critic: ``"separate"`` (PEARL+) or ``"shared"`` (ablation PEARL+ (w/o))
     :param prior_critic_arch: hidden sizes of the prior critic (paper: [300, 300, 300]; ablation [100, 100, 100])
+    :param prior_n_critics: Q networks in the prior critic (the paper: one new Q-network; 2 adds a twin minimum)
     :param latent_dim: size of z
     :param kl_weight: weight ``beta`` of KL(q(z|c) || N(0, I)), summed over the meta-batch tasks
     :param use_next_obs_in_context: context transitions are (s, a, r, s') instead of (s, a, r)
@@ -131,6 +132,7 @@ class PEARLPlus(OffPolicyAlgorithm):
         prior_coef: float = 0.1,
         prior_critic: str = "separate",
         prior_critic_arch: list[int] | None = None,
+        prior_n_critics: int = 1,
         latent_dim: int = 5,
         kl_weight: float = 0.1,
         use_next_obs_in_context: bool = False,
@@ -215,6 +217,7 @@ class PEARLPlus(OffPolicyAlgorithm):
             latent_dim=latent_dim,
             use_next_obs_in_context=use_next_obs_in_context,
             prior_critic=prior_critic,
+            prior_n_critics=prior_n_critics,
         )
         if encoder_arch is not None:
             self.policy_kwargs["encoder_arch"] = encoder_arch
@@ -682,12 +685,12 @@ class PEARL(PEARLPlus):
     """
     PEARL (Rakelly et al. 2019): PEARL+ without the prior term and without a prior critic.
 
-    Takes every argument of :class:`PEARLPlus` except ``prior_coef``, ``prior_critic`` and
-    ``prior_critic_arch``.
+    Takes every argument of :class:`PEARLPlus` except ``prior_coef``, ``prior_critic``,
+    ``prior_critic_arch`` and ``prior_n_critics``.
     """
 
     def __init__(self, policy: str | type[PEARLPolicy], env: GymEnv | str, **kwargs: Any):
-        for name in ("prior_coef", "prior_critic", "prior_critic_arch"):
+        for name in ("prior_coef", "prior_critic", "prior_critic_arch", "prior_n_critics"):
             if name in kwargs:
                 raise ValueError(f"PEARL has no {name!r}: use PEARLPlus for the prior-regularised algorithm")
         super().__init__(policy, env, prior_coef=0.0, prior_critic="none", **kwargs)
