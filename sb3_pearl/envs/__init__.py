@@ -16,6 +16,13 @@ from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, TaskFamily, check_ta
 FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "PointGoalMeta-v0": ("sb3_pearl.envs.point_goal:PointGoalMetaEnv", {"max_episode_steps": 20}),
     "SafePointGoalMeta-v0": ("sb3_pearl.envs.point_goal:SafePointGoalMetaEnv", {"max_episode_steps": 30}),
+    "SparsePointGoalMeta-v0": ("sb3_pearl.envs.sparse_point_goal:SparsePointGoalMetaEnv", {"max_episode_steps": 20}),
+    "PointMazeGoalMeta-v0": ("sb3_pearl.envs.point_maze_goal:PointMazeGoalMetaEnv", {"max_episode_steps": 300}),
+    "HalfCheetahVelMeta-v0": ("sb3_pearl.envs.half_cheetah_vel:HalfCheetahVelMetaEnv", {"max_episode_steps": 200}),
+    "Walker2dVelMeta-v0": ("sb3_pearl.envs.walker2d_vel:Walker2dVelMetaEnv", {"max_episode_steps": 200}),
+    "AntVelMeta-v0": ("sb3_pearl.envs.ant_vel:AntVelMetaEnv", {"max_episode_steps": 200}),
+    "AntDirMeta-v0": ("sb3_pearl.envs.ant_dir:AntDirMetaEnv", {"max_episode_steps": 200}),
+    "AntGoalMeta-v0": ("sb3_pearl.envs.ant_goal:AntGoalMetaEnv", {"max_episode_steps": 200}),
 }
 
 
