@@ -205,7 +205,7 @@ class MultiDiscretePoint(PointGoalMetaEnv):
 
 
 def test_clear_errors(tiny_kwargs: dict[str, Any]) -> None:
-    with pytest.raises(ValueError, match="task protocol"):
+    with pytest.raises(ValueError, match="task-family env"):
         PEARLPlus("MlpPolicy", NoTaskEnv())
     with pytest.raises(ValueError, match="Box and Discrete"):
         PEARLPlus("MlpPolicy", MultiDiscretePoint())

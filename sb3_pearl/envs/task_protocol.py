@@ -90,6 +90,37 @@ class MetaTaskEnv:
             self._pending_task = None
 
 
+def check_task_vec_env(env: Any, algorithm: str) -> None:
+    """
+    Raise a clear error unless every env of a VecEnv follows the task protocol.
+
+    :param env: the VecEnv
+    :param algorithm: name of the algorithm, for the message
+    """
+    missing = [name for name in TASK_METHODS if not env.has_attr(name)]
+    if missing:
+        raise ValueError(
+            f"{algorithm} needs a task-family env with sample_tasks(n, seed), set_task(task) and get_task(); "
+            f"missing {missing}. See sb3_pearl.envs.task_protocol.MetaTaskEnv, e.g. gym.make('SafePointGoalMeta-v0')."
+        )
+
+
+def draw_train_test_tasks(env: Any, n_train: int, n_test: int, seed: int | None) -> tuple[list[Task], list[Task]]:
+    """
+    Draw the training and held-out test tasks of a model in one ``sample_tasks`` call.
+
+    One call split in two keeps the lists of every algorithm identical for the same seed.
+
+    :param env: a VecEnv of a task family
+    :param n_train: number of training tasks
+    :param n_test: number of test tasks
+    :param seed: the model seed
+    :return: training tasks, test tasks
+    """
+    tasks = env.env_method("sample_tasks", n_train + n_test, seed, indices=[0])[0]
+    return list(tasks[:n_train]), list(tasks[n_train:])
+
+
 def check_task_env(env: Any) -> None:
     """
     Raise a clear error unless ``env`` (a gymnasium env, possibly wrapped) follows the task protocol.

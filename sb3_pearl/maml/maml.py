@@ -33,12 +33,10 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import safe_mean
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
+from sb3_pearl.envs.task_protocol import Task, check_task_vec_env, draw_train_test_tasks
 from sb3_pearl.maml.policies import MAMLPolicy, MlpPolicy, Params
 
 SelfMAML = TypeVar("SelfMAML", bound="MAML")
-
-Task = dict[str, Any]
-TASK_METHODS = ("sample_tasks", "set_task", "get_task")
 
 
 class EpisodeBatch(NamedTuple):
@@ -240,12 +238,7 @@ class MAML(BaseAlgorithm):
             raise ValueError(f"MAML supports Box observation spaces only, got {self.observation_space}")
         if self._vec_normalize_env is not None:
             raise ValueError("VecNormalize is not supported: per-env task switches reset envs below the VecEnv wrappers")
-        missing = [name for name in TASK_METHODS if not env.has_attr(name)]
-        if missing:
-            raise ValueError(
-                f"MAML needs a task-family env (sample_tasks(n, seed), set_task(task), get_task()); missing {missing}. "
-                "See sb3_pearl.envs.task_protocol, e.g. gym.make('PointGoalMeta-v0')."
-            )
+        check_task_vec_env(env, "MAML")
 
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
@@ -264,10 +257,10 @@ class MAML(BaseAlgorithm):
                     raise ValueError("The env has no registered time limit: pass max_episode_steps to MAML")
                 self.max_episode_steps = int(limit)
             if not self.train_tasks:
-                tasks = self.env.env_method("sample_tasks", self.n_train_tasks + self.n_test_tasks, self.seed, indices=[0])[0]
-                self.train_tasks = list(tasks[: self.n_train_tasks])
+                train, test = draw_train_test_tasks(self.env, self.n_train_tasks, self.n_test_tasks, self.seed)
+                self.train_tasks = train
                 if not self.test_tasks:
-                    self.test_tasks = list(tasks[self.n_train_tasks :])
+                    self.test_tasks = test
         self.reset_adaptation()
 
     def _excluded_save_params(self) -> list[str]:

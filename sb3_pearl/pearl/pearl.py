@@ -35,7 +35,7 @@ from sb3_pearl.common.soft_actor_critic import (
     soft_value,
 )
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
-from sb3_pearl.envs.task_protocol import TASK_METHODS, Task
+from sb3_pearl.envs.task_protocol import Task, check_task_vec_env, draw_train_test_tasks
 from sb3_pearl.pearl.policies import PEARLPolicy
 
 SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
@@ -274,21 +274,15 @@ class PEARLPlus(OffPolicyAlgorithm):
             )
         if not isinstance(self.observation_space, spaces.Box) or len(self.observation_space.shape) != 1:
             raise ValueError(f"{type(self).__name__} needs a flat Box observation space, got {self.observation_space}")
-        missing = [name for name in TASK_METHODS if not env.has_attr(name)]
-        if missing:
-            raise ValueError(
-                f"the env does not implement the task protocol (missing {missing}): meta-RL needs an env with "
-                "sample_tasks(n, seed), set_task(task) and get_task(), e.g. gym.make('SafePointGoalMeta-v0'); "
-                "see sb3_pearl.envs.task_protocol.MetaTaskEnv"
-            )
+        check_task_vec_env(env, type(self).__name__)
         if self._vec_normalize_env is not None:
             raise ValueError("VecNormalize is not supported: per-env task switches reset envs below the VecEnv wrappers")
 
     def _draw_tasks(self, env: VecEnv) -> None:
-        tasks = env.env_method("sample_tasks", self.n_train_tasks + self.n_test_tasks, self.seed, indices=[0])[0]
-        self.train_tasks = list(tasks[: self.n_train_tasks])
+        train, test = draw_train_test_tasks(env, self.n_train_tasks, self.n_test_tasks, self.seed)
+        self.train_tasks = train
         if not self.test_tasks:
-            self.test_tasks = list(tasks[self.n_train_tasks :])
+            self.test_tasks = test
 
     def _setup_entropy(self) -> None:
         if self.target_entropy == "auto":
