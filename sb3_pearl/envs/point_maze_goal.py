@@ -67,6 +67,8 @@ class PointMazeGoalMetaEnv(MetaTaskEnv, gym.Env):
     :param kwargs: passed to gymnasium-robotics' ``PointMazeEnv`` (and its MuJoCo env)
     """
 
+    metadata = dict(PointMazeEnv.metadata)
+
     def __init__(
         self,
         maze: str | Sequence[Sequence[int | str]] = "medium",
@@ -119,7 +121,6 @@ class PointMazeGoalMetaEnv(MetaTaskEnv, gym.Env):
         self.render_mode = render_mode
         self.action_space = self.maze_env.action_space
         self.observation_space = self.maze_env.observation_space["observation"]  # type: ignore[index]
-        self.metadata = dict(self.maze_env.metadata)
 
     # -- task protocol ---------------------------------------------------------------------
     def _cell_centre(self, cell: Sequence[int]) -> np.ndarray:
