@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import pickle
 from typing import Any
@@ -54,6 +55,7 @@ def test_check_env_and_task_protocol(env_id: str) -> None:
     base = env.unwrapped
     tasks = base.sample_tasks(6, seed=3)
     assert tasks == base.sample_tasks(6, seed=3) and tasks != base.sample_tasks(6, seed=4)
+    assert json.loads(json.dumps(tasks)) == tasks  # JSON-serialisable task dicts
     assert base.sample_tasks(0, seed=1) == []
     first, second = TASKS[env_id]
     base.set_task(first)

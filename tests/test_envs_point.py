@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import pickle
 from collections import deque
@@ -25,6 +26,7 @@ def test_check_env_and_task_protocol(env_id: str) -> None:
     base = env.unwrapped
     tasks = base.sample_tasks(5, seed=3)
     assert tasks == base.sample_tasks(5, seed=3) and tasks != base.sample_tasks(5, seed=4)
+    assert json.loads(json.dumps(tasks)) == tasks  # JSON-serialisable task dicts
     base.set_task(tasks[1])
     assert base.get_task() == tasks[1]
     for seed in (0, 1):  # sticky across resets
