@@ -237,3 +237,23 @@ def test_twin_critics_have_distinct_initialisations(tiny_kwargs: dict[str, Any])
         first, second = (q[0].weight for q in critic.q_networks)
         assert not th.equal(first, second)
     assert len(PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **tiny_kwargs).prior_critic.q_networks) == 1
+
+
+def test_collection_sizes_are_validated_and_zero_initial_steps_work(tiny_kwargs: dict[str, Any]) -> None:
+    with pytest.raises(ValueError, match="context buffer"):
+        PEARLPlus("MlpPolicy", "PointGoalMeta-v0", **{**tiny_kwargs, "num_steps_prior": 0, "num_steps_posterior": 0})
+    with pytest.raises(ValueError, match=">= 0"):
+        PEARLPlus("MlpPolicy", "PointGoalMeta-v0", **{**tiny_kwargs, "num_initial_steps": -1})
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **{**tiny_kwargs, "num_initial_steps": 0})
+    model.learn(200)  # no initial phase: every iteration visits sampled tasks
+    assert model.num_timesteps == 200 and model._n_updates > 0
+
+
+def test_saved_replay_buffer_holds_only_used_rows(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, buffer_size=1_000_000, **tiny_kwargs)
+    model.learn(300)
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    assert (tmp_path / "buffer.pkl").stat().st_size < 1_000_000  # 4 tasks x 1e6 rows would be > 100 MB
+    model.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert model.replay_buffer.rl.observations.shape == (4, 1_000_000, 2)
+    model.learn(100, reset_num_timesteps=False)

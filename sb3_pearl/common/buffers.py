@@ -60,6 +60,24 @@ class TaskReplayBuffer:
         self.pos[task] = (p + 1) % self.capacity
         self.size[task] = min(self.size[task] + 1, self.capacity)
 
+    _ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones")
+
+    def __getstate__(self) -> dict:
+        """Pickle only the rows in use (``save_replay_buffer``): the capacity is not written to disk."""
+        state = self.__dict__.copy()
+        used = int(self.size.max()) if self.size.size else 0
+        for name in self._ARRAYS:
+            state[name] = getattr(self, name)[:, :used].copy()
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        for name in self._ARRAYS:
+            stored = state[name]
+            full = np.zeros((stored.shape[0], state["capacity"], *stored.shape[2:]), dtype=stored.dtype)
+            full[:, : stored.shape[1]] = stored
+            state[name] = full
+        self.__dict__.update(state)
+
     def clear(self, task: int) -> None:
         """Forget every transition of ``task``."""
         self.pos[task] = 0

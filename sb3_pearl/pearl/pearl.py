@@ -172,6 +172,12 @@ class PEARLPlus(OffPolicyAlgorithm):
         ):
             if value < 1:
                 raise ValueError(f"{name} must be >= 1, got {value}")
+        if min(num_initial_steps, num_steps_prior, num_steps_posterior, num_extra_rl_steps_posterior) < 0:
+            raise ValueError("the num_*_steps collection sizes must be >= 0")
+        if num_steps_prior + num_steps_posterior == 0:
+            raise ValueError(
+                "num_steps_prior + num_steps_posterior must be > 0: they fill the context buffer the encoder trains on"
+            )
         super().__init__(
             policy,
             env,
@@ -458,7 +464,7 @@ class PEARLPlus(OffPolicyAlgorithm):
     def _plan_iteration(self) -> list[list[Segment]]:
         """The segments of the next iteration, one program (list of segments) per visited task."""
         without_data = np.flatnonzero(self.replay_buffer.rl.size == 0)
-        if len(without_data) > 0:  # iteration 0 (or an interrupted one): initial prior data
+        if len(without_data) > 0 and self.num_initial_steps > 0:  # iteration 0 (or an interrupted one): initial prior data
             return [[Segment(int(t), self.num_initial_steps, "prior", True, True)] for t in without_data]
         programs = []
         for task in np.random.randint(len(self.train_tasks), size=self.num_tasks_sample):
