@@ -75,8 +75,8 @@ class AntDirMetaEnv(LocomotionTaskEnv, AntEnv):
         EzPickle.__init__(self, tuple(self.base_directions), direction_spread, unhealthy_penalty, max_episode_steps, **kwargs)
 
     def _direction_around(self, base: float, rng: np.random.Generator) -> Task:
-        theta = base + rng.uniform(-self.direction_spread, self.direction_spread)
-        return {"direction": float(theta % (2 * math.pi))}
+        theta = (base + rng.uniform(-self.direction_spread, self.direction_spread)) % (2 * math.pi)
+        return {"direction": float(theta) if theta < 2 * math.pi else 0.0}  # -1e-17 % 2 pi rounds to 2 pi
 
     def _sample_task(self, rng: np.random.Generator) -> Task:
         return self._direction_around(self.base_directions[int(rng.integers(len(self.base_directions)))], rng)

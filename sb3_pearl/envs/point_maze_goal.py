@@ -1,9 +1,10 @@
 """``PointMazeGoalMeta-v0``: reach an unobserved goal cell of a maze (gymnasium-robotics' PointMaze).
 
-Gymnasium-robotics' ``PointMaze`` (``PointMazeEnv``: a force-actuated ball, actions in [-1, 1]^2,
-velocity clipped to 5 m/s, dt = 0.01 s, walls, its dense reward ``exp(-||xy - goal||)``; all reused
-by delegation to a ``PointMazeEnv`` it holds; a subclass cannot drop the goal from the
-observation, its ``GoalEnv.reset`` requires a ``Dict`` space) turned into a task family: the *goal cell is the task*.
+Gymnasium-robotics' ``PointMaze`` turned into a task family: the *goal cell is the task*. The env
+holds a ``PointMazeEnv`` and delegates to it (a force-actuated ball, actions in [-1, 1]^2, velocity
+clipped to 5 m/s, dt = 0.01 s, the walls, the dense reward ``exp(-||xy - goal||)`` are all its own);
+it is not a subclass because ``GoalEnv.reset`` insists on a ``Dict`` observation space, and the
+goal must leave the observation.
 
 - Maze: ``"medium"`` by default (gymnasium-robotics' ``MEDIUM_MAZE``, 8 x 8 with 26 free cells):
   the U-maze has only 7 free cells, i.e. 6 goals, too few for disjoint train and test sets; the
@@ -26,7 +27,7 @@ observation, its ``GoalEnv.reset`` requires a ``Dict`` space) turned into a task
 - Horizon 300 steps (3 s): the farthest goal is 11 cells (11 m) away and the ball moves at most
   5 m/s, so it needs at least 220 steps plus the corners; a scripted waypoint controller reaches
   every goal of the medium maze within 300 steps (``tests/test_envs_point.py``). Gymnasium-robotics'
-  own limit (600) would double the cost of meta-training for no reachable goal.
+  own limit (600) would double the cost of meta-training and reach no further goal.
 """
 
 from __future__ import annotations

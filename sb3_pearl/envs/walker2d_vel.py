@@ -16,8 +16,8 @@ Choices and where they come from:
   2019) used U[0, 10], far beyond what Walker2d reaches in a 200-step episode. U[0, 2] is MAML's
   cheetah range, reachable from rest within the horizon.
 - Horizon 200 steps (PEARL's ``max_path_length``), with Gymnasium's ``frame_skip=4`` (dt = 0.008 s,
-  the Walker2d setting of the gym envs PEARL used): 1.6 s of simulated time. ``frame_skip=8``
-  (a 3.2 s episode, as in ProMP's walker) is a constructor kwarg.
+  gym's Walker2d default): 1.6 s of simulated time. ``frame_skip=8`` (a 3.2 s episode, the
+  setting of ProMP's walker) is a constructor kwarg; the velocity range should then be revisited.
 - Unhealthy penalty (see :mod:`sb3_pearl.envs.locomotion`): by default ``max(|v*_low|, |v*_high|)``
   = 2 per skipped step, the largest velocity error of a walker that stands still, so standing
   still and healthy always beats falling.
