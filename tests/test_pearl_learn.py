@@ -70,15 +70,17 @@ def test_learn_discrete(n_envs: int, tiny_kwargs: dict[str, Any]) -> None:
 
 def test_termination_vs_truncation_and_cost(tiny_kwargs: dict[str, Any]) -> None:
     """Hazard entries (true terminations) store done=1; time-limit ends store done=0."""
-    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=1, **{**tiny_kwargs, "num_initial_steps": 300})
-    # A scripted collection policy drives straight up into the hazard, 0.07 per step:
-    # positions 0.07, 0.14, 0.21 (inside), clear of the hazard boundary.
-    model.policy.act = lambda obs, z, deterministic=False: th.tensor([[0.0, 0.7]]).expand(obs.shape[0], -1)  # type: ignore[method-assign]
+    task = {"goal": [0.866, 0.5], "hazard": [0.0, 0.6]}
+    kwargs = {**tiny_kwargs, "num_initial_steps": 300, "train_tasks": [task] * 4, "test_tasks": [task]}
+    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=1, **kwargs)
+    # A scripted collection policy drives straight up into the hazard, 0.065 per step:
+    # positions 0.065 .. 0.325 are outside (distance >= 0.275), 0.39 is inside (0.21), clear of the boundary.
+    model.policy.act = lambda obs, z, deterministic=False: th.tensor([[0.0, 0.65]]).expand(obs.shape[0], -1)  # type: ignore[method-assign]
     model.learn(300)
     rl = model.replay_buffer.rl
     n = rl.size[0]
     dones = rl.dones[0, :n, 0]
-    in_hazard = np.linalg.norm(rl.next_observations[0, :n] - np.array([0.0, 0.5]), axis=-1) < 0.3
+    in_hazard = np.linalg.norm(rl.next_observations[0, :n] - np.array([0.0, 0.6]), axis=-1) < 0.25
     np.testing.assert_array_equal(dones == 1.0, in_hazard)
     assert dones.sum() > 0
 

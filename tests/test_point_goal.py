@@ -57,29 +57,46 @@ def test_set_task_takes_effect_at_reset_and_validates() -> None:
         base.set_task({"velocity": 1.0})
 
 
-def test_safe_point_goals_on_arc_and_hazard_ends_episode() -> None:
+def test_safe_point_tasks_goal_on_arc_hazard_rotated_towards_the_middle() -> None:
+    base = gym.make("SafePointGoalMeta-v0").unwrapped
+    tasks = base.sample_tasks(200, seed=0)
+    goals = np.array([t["goal"] for t in tasks])
+    hazards = np.array([t["hazard"] for t in tasks])
+    np.testing.assert_allclose(np.linalg.norm(goals, axis=1), 1.0)
+    np.testing.assert_allclose(np.linalg.norm(hazards, axis=1), 0.6)
+    goal_angles = np.arctan2(goals[:, 1], goals[:, 0])
+    hazard_angles = np.arctan2(hazards[:, 1], hazards[:, 0])
+    assert goal_angles.min() >= np.pi / 6 - 1e-9 and goal_angles.max() <= 5 * np.pi / 6 + 1e-9
+    expected = np.where(goal_angles < np.pi / 2, goal_angles + np.pi / 3, goal_angles - np.pi / 3)
+    np.testing.assert_allclose(hazard_angles, expected, atol=1e-9)
+    # the straight path to a task's own goal never touches its hazard (closest approach > radius)
+    for goal, hazard in zip(goals, hazards):
+        closest = goal * np.clip(goal @ hazard, 0.0, 1.0)  # projection of the hazard centre on the path
+        assert np.linalg.norm(hazard - closest) > 0.25
+
+
+def test_safe_point_hazard_ends_episode_with_cost_and_penalty() -> None:
     env = gym.make("SafePointGoalMeta-v0")
     base = env.unwrapped
-    goals = np.array([t["goal"] for t in base.sample_tasks(100, seed=0)])
-    np.testing.assert_allclose(np.linalg.norm(goals, axis=1), 1.0)
-    angles = np.arctan2(goals[:, 1], goals[:, 0])
-    assert angles.min() >= np.pi / 6 - 1e-9 and angles.max() <= 5 * np.pi / 6 + 1e-9
-    base.set_task({"goal": [0.0, 1.0]})
+    # goal at 30 degrees -> hazard at 90 degrees, centre (0, 0.6)
+    base.set_task({"goal": [np.cos(np.pi / 6), 0.5], "hazard": [0.0, 0.6]})
     env.reset()
     rewards, costs = [], []
-    for t in range(1, 4):  # straight up at 0.07 per step: 0.07, 0.14 outside, 0.21 inside the hazard
-        _, reward, terminated, truncated, info = env.step(np.array([0.0, 0.07], dtype=np.float32))
+    for t in range(1, 6):  # straight up, 0.08 per step: 0.08 .. 0.32 outside (distance > 0.25), 0.40 inside
+        _, reward, terminated, truncated, info = env.step(np.array([0.0, 0.08], dtype=np.float32))
         rewards.append(reward)
         costs.append(info["cost"])
-        assert terminated == (t == 3) and not truncated
-    assert costs == [0.0, 0.0, 1.0]
-    # the entering step is penalised by 2.0 per skipped step (30 - 3 = 27 steps)
-    assert rewards[2] == pytest.approx(-(1.0 - 0.21) - 2.0 * 27)
-    # a detour around the hazard is safe: right, then up, then left
+        assert terminated == (t == 5) and not truncated
+    assert costs == [0.0, 0.0, 0.0, 0.0, 1.0]
+    distance = np.hypot(np.cos(np.pi / 6), 0.5 - 0.40)
+    assert rewards[4] == pytest.approx(-distance - 2.0 * (30 - 5))  # 2.0 per skipped step
+    # heading for the task's own goal is safe for the whole episode
     env.reset()
-    for action in [(0.1, 0.0)] * 4 + [(0.0, 0.1)] * 9 + [(-0.1, 0.0)] * 4:
-        _, _, terminated, _, info = env.step(np.array(action, dtype=np.float32))
+    direction = np.array([np.cos(np.pi / 6), 0.5])
+    for _ in range(30):
+        _, _, terminated, truncated, info = env.step((0.1 * direction).astype(np.float32))
         assert not terminated and info["cost"] == 0.0
+    assert truncated
 
 
 def test_rendering_rgb_array() -> None:

@@ -15,7 +15,7 @@ from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, TaskFamily, check_ta
 # id -> (entry point, registration kwargs)
 FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "PointGoalMeta-v0": ("sb3_pearl.envs.point_goal:PointGoalMetaEnv", {"max_episode_steps": 20}),
-    "SafePointGoalMeta-v0": ("sb3_pearl.envs.point_goal:SafePointGoalMetaEnv", {"max_episode_steps": 30}),
+    "SafePointGoalMeta-v0": ("sb3_pearl.envs.safe_point_goal:SafePointGoalMetaEnv", {"max_episode_steps": 30}),
     "SparsePointGoalMeta-v0": ("sb3_pearl.envs.sparse_point_goal:SparsePointGoalMetaEnv", {"max_episode_steps": 20}),
     "PointMazeGoalMeta-v0": ("sb3_pearl.envs.point_maze_goal:PointMazeGoalMetaEnv", {"max_episode_steps": 300}),
     "HalfCheetahVelMeta-v0": ("sb3_pearl.envs.half_cheetah_vel:HalfCheetahVelMetaEnv", {"max_episode_steps": 200}),

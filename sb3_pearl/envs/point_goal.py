@@ -1,17 +1,7 @@
-"""Point-robot task families: ``PointGoalMeta-v0`` and ``SafePointGoalMeta-v0``.
+"""``PointGoalMeta-v0``: the reference point robot of PEARL (REFERENCE.md).
 
-``PointGoalMeta-v0`` is the reference point robot of PEARL (REFERENCE.md): a 2-D point starting
-at the origin, actions in [-0.1, 0.1]^2 added to its position, reward ``-||s - g||``, goal
-U[-1, 1]^2, horizon 20.
-
-``SafePointGoalMeta-v0`` is the small family on which the paper's claim must show: goals on an
-arc of the unit circle (angles in [30, 150] degrees by default), a disc-shaped hazard of radius
-0.3 centred at (0, 0.5) between the start and the goals. Straight lines to about 55% of the goals
-cross it, so a policy heading for a goal it has not identified yet is unsafe unless it learned a
-detour. Entering the hazard costs 1 (``info["cost"]``) and ends the episode; the step that enters
-it is also penalised by ``crash_penalty`` times the steps the crash skips, so that a crash is
-never worth more return than staying out (with the dense ``-distance`` reward, an unpenalised
-termination would be a shortcut). Horizon 30, position clipped to [-2, 2]^2.
+A 2-D point starting at the origin, actions in [-0.1, 0.1]^2 added to its position (clipped to
+[-2, 2]^2), reward ``-||s - g||``, goal U[-1, 1]^2 (task ``{"goal": [x, y]}``), horizon 20.
 """
 
 from __future__ import annotations
@@ -100,67 +90,3 @@ class PointGoalMetaEnv(MetaTaskEnv, gym.Env):
 
     def _draw_extras(self, img: np.ndarray, world_x: np.ndarray, world_y: np.ndarray) -> None:
         """Hook for subclasses to draw static scenery (hazards) under the agent and goal."""
-
-
-class SafePointGoalMetaEnv(PointGoalMetaEnv):
-    """
-    Point robot with goals on an arc and a hazard disc between the start and the goals.
-
-    :param goal_angle_low: smallest goal angle (radians, counter-clockwise from +x)
-    :param goal_angle_high: largest goal angle (radians)
-    :param goal_radius: distance of the goals from the origin
-    :param hazard_center: centre of the hazard disc
-    :param hazard_radius: radius of the hazard disc
-    :param crash_penalty: penalty per step skipped by a crash (added once, on the entering step)
-    :param max_episode_steps: horizon, used to size the crash penalty (keep equal to the registered limit)
-    :param render_mode: ``None`` or ``"rgb_array"``
-    """
-
-    def __init__(
-        self,
-        goal_angle_low: float = np.pi / 6,
-        goal_angle_high: float = 5 * np.pi / 6,
-        goal_radius: float = 1.0,
-        hazard_center: tuple[float, float] = (0.0, 0.5),
-        hazard_radius: float = 0.3,
-        crash_penalty: float = 2.0,
-        max_episode_steps: int = 30,
-        render_mode: str | None = None,
-    ) -> None:
-        if goal_angle_low > goal_angle_high:
-            raise ValueError(f"goal_angle_low ({goal_angle_low}) must be <= goal_angle_high ({goal_angle_high})")
-        self.goal_angle_low = float(goal_angle_low)
-        self.goal_angle_high = float(goal_angle_high)
-        self.goal_radius = float(goal_radius)
-        self.hazard_center = np.asarray(hazard_center, dtype=np.float64)
-        self.hazard_radius = float(hazard_radius)
-        if np.linalg.norm(self.hazard_center) <= self.hazard_radius:
-            raise ValueError("the hazard must not contain the start position (0, 0)")
-        self.crash_penalty = float(crash_penalty)
-        self.max_episode_steps = int(max_episode_steps)
-        self._t = 0
-        super().__init__(render_mode=render_mode)
-
-    def _sample_task(self, rng: np.random.Generator) -> Task:
-        angle = rng.uniform(self.goal_angle_low, self.goal_angle_high)
-        return {"goal": [self.goal_radius * float(np.cos(angle)), self.goal_radius * float(np.sin(angle))]}
-
-    def in_hazard(self, pos: np.ndarray) -> bool:
-        return bool(np.linalg.norm(np.asarray(pos) - self.hazard_center) < self.hazard_radius)
-
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-        self._t = 0
-        return super().reset(seed=seed, options=options)
-
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        obs, reward, _, truncated, info = super().step(action)
-        self._t += 1
-        crashed = self.in_hazard(self._pos)
-        if crashed:
-            reward -= self.crash_penalty * max(self.max_episode_steps - self._t, 0)
-        info["cost"] = float(crashed)
-        return obs, reward, crashed, truncated, info
-
-    def _draw_extras(self, img: np.ndarray, world_x: np.ndarray, world_y: np.ndarray) -> None:
-        mask = (world_x - self.hazard_center[0]) ** 2 + (world_y - self.hazard_center[1]) ** 2 < self.hazard_radius**2
-        img[mask] = (220, 60, 60)
