@@ -1,0 +1,472 @@
+"""Fine-Tune: the paper's baseline without task inference (REFERENCE.md, "Baselines").
+
+Meta-training trains one soft actor-critic policy on the mixture of the training tasks (a
+uniformly drawn training task per episode). At meta-test the policy is fine-tuned on the new
+task's own data: after each trajectory, ``adapt_gradient_steps`` soft actor-critic steps on a
+fresh per-task replay buffer, starting from the weights fine-tuned so far (the pretrained ones
+after :meth:`FineTune.reset_adaptation`).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import ConstantSchedule, get_parameters_by_name
+from stable_baselines3.sac.policies import SACPolicy
+
+from sb3_pearl.envs.task_protocol import Task, check_task_vec_env, draw_train_test_tasks
+from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
+
+SelfFineTune = TypeVar("SelfFineTune", bound="FineTune")
+
+# Attributes that the adaptation gradient steps swap in, so that the soft actor-critic step of
+# training (``train``) runs unchanged on the fine-tuned copy and the new task's buffer.
+_ADAPTATION_STATE = ("policy", "log_ent_coef", "ent_coef_optimizer", "replay_buffer", "lr_schedule", "_n_updates", "_logger")
+
+
+class FineTune(DiscreteSAC):
+    """
+    Fine-Tune baseline: SAC trained on the mixture of the training tasks, fine-tuned on a new task.
+
+    Meta-training (``learn``) is SB3's SAC (Box actions) or the project's soft discrete SAC
+    (Discrete actions, :class:`~sb3_pearl.finetune.discrete_sac.DiscreteSAC`) with one change:
+    every episode of every env runs a training task drawn uniformly from :attr:`train_tasks`. The
+    policy sees no task information (no task inference).
+
+    Adaptation API (shared with PEARL / PEARL+ / MAML, ``DESIGN.md``):
+
+    - :meth:`reset_adaptation`: drop the fine-tuned copy and the new task's buffer; :meth:`predict`
+      acts with the pretrained policy again (k = 0);
+    - :meth:`observe`: store one transition of the new task in its own (fresh) replay buffer;
+    - :meth:`adapt`: ``adapt_gradient_steps`` soft actor-critic steps on that buffer only, on a copy
+      of the networks, optimizers and entropy coefficient that starts from the pretrained ones and
+      carries over between calls (fine-tuning continues from the weights fine-tuned so far);
+    - :meth:`predict`: acts with the fine-tuned copy if there is one, else the pretrained policy.
+
+    The pretrained model itself is never modified by adaptation, so ``save`` / ``learn`` always
+    see the meta-trained weights.
+
+    :param policy: ``"MlpPolicy"`` (SAC's MlpPolicy for Box, :class:`DiscreteSACPolicy` for Discrete) or a class
+    :param env: an env id or env following the task protocol (``sample_tasks``, ``set_task``, ``get_task``)
+    :param learning_rate: learning rate of meta-training (constant or schedule)
+    :param buffer_size: replay buffer size of meta-training (all training tasks mixed)
+    :param learning_starts: random-action steps before the first gradient step
+    :param batch_size: minibatch size of meta-training
+    :param tau: Polyak coefficient of the target critics
+    :param gamma: discount factor
+    :param train_freq: update the model every ``train_freq`` steps (int or ``(n, "step" | "episode")``)
+    :param gradient_steps: gradient steps after each rollout (-1: as many as env steps collected)
+    :param action_noise: extra exploration noise (Box)
+    :param replay_buffer_class: replay buffer class of meta-training
+    :param replay_buffer_kwargs: its extra arguments
+    :param optimize_memory_usage: SB3's memory-efficient replay buffer
+    :param n_steps: n-step returns
+    :param ent_coef: ``"auto"`` / ``"auto_<init>"`` (learned) or a float
+    :param target_update_interval: Polyak update of the target critics every this many gradient steps
+    :param target_entropy: target of the learned entropy coefficient (``"auto"``: ``-dim(A)`` for Box,
+        ``0.6 * log(n_actions)`` for Discrete)
+    :param use_sde: generalised state-dependent exploration (Box only)
+    :param sde_sample_freq: gSDE noise resampling frequency
+    :param use_sde_at_warmup: gSDE instead of uniform random actions before ``learning_starts``
+    :param n_train_tasks: training tasks: the first ``n_train_tasks`` of ``env.sample_tasks(n_train_tasks +
+        n_test_tasks, seed)`` (the same draw as PEARL / PEARL+ / MAML, so a seed gives every algorithm the same tasks)
+    :param n_test_tasks: held-out test tasks: the rest of that draw
+    :param train_tasks: explicit training tasks (overrides the draw)
+    :param test_tasks: explicit test tasks (overrides the draw)
+    :param max_episode_steps: the task family's episode length (``None``: the env's registered time limit);
+        at adaptation, an episode that ends (``done``) at this length is a time-limit truncation and its last
+        transition keeps its bootstrap, every other ``done`` is a terminal state
+    :param adapt_gradient_steps: soft actor-critic gradient steps per :meth:`adapt` call (per new-task
+        trajectory in the meta-test protocol); default 200 (docs/finetune.md: one gradient step per observed
+        transition of a 200-step MuJoCo trajectory, SAC's update-to-data ratio of 1)
+    :param adapt_batch_size: minibatch size of the adaptation steps (``None``: ``batch_size``), drawn with
+        replacement from the new task's transitions
+    :param adapt_learning_rate: learning rate of the adaptation steps (``None``: the initial learning rate of
+        meta-training, ``lr_schedule(1)``)
+    :param adapt_buffer_size: capacity of the new task's replay buffer (transitions)
+    :param stats_window_size: episodes averaged in the rollout logs
+    :param tensorboard_log: TensorBoard log folder
+    :param policy_kwargs: extra policy arguments (``net_arch``, ``activation_fn``, ``n_critics``, ...)
+    :param verbose: 0 silent, 1 info, 2 debug
+    :param seed: seed of the networks, the task draw and the sampling
+    :param device: torch device
+    :param _init_setup_model: build the networks at construction
+    """
+
+    def __init__(
+        self,
+        policy: str | type[SACPolicy] | type[DiscreteSACPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        ent_coef: str | float = "auto",
+        target_update_interval: int = 1,
+        target_entropy: str | float = "auto",
+        use_sde: bool = False,
+        sde_sample_freq: int = -1,
+        use_sde_at_warmup: bool = False,
+        n_train_tasks: int = 100,
+        n_test_tasks: int = 30,
+        train_tasks: list[Task] | None = None,
+        test_tasks: list[Task] | None = None,
+        max_episode_steps: int | None = None,
+        adapt_gradient_steps: int = 200,
+        adapt_batch_size: int | None = None,
+        adapt_learning_rate: float | None = None,
+        adapt_buffer_size: int = 10_000,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        if n_train_tasks < 1 or n_test_tasks < 0:
+            raise ValueError(f"n_train_tasks must be >= 1 and n_test_tasks >= 0, got {n_train_tasks} and {n_test_tasks}")
+        if train_tasks is not None and len(train_tasks) == 0:
+            raise ValueError("train_tasks must hold at least one task (or be None to draw them)")
+        if adapt_gradient_steps < 0:
+            raise ValueError(f"adapt_gradient_steps must be >= 0, got {adapt_gradient_steps}")
+        if adapt_batch_size is not None and adapt_batch_size < 1:
+            raise ValueError(f"adapt_batch_size must be >= 1 or None, got {adapt_batch_size}")
+        if adapt_learning_rate is not None and adapt_learning_rate < 0:
+            raise ValueError(f"adapt_learning_rate must be >= 0 or None, got {adapt_learning_rate}")
+        if adapt_buffer_size < 1:
+            raise ValueError(f"adapt_buffer_size must be >= 1, got {adapt_buffer_size}")
+        if max_episode_steps is not None and max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be >= 1 or None, got {max_episode_steps}")
+        super().__init__(
+            policy,
+            env,
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            ent_coef=ent_coef,
+            target_update_interval=target_update_interval,
+            target_entropy=target_entropy,
+            use_sde=use_sde,
+            sde_sample_freq=sde_sample_freq,
+            use_sde_at_warmup=use_sde_at_warmup,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+            _init_setup_model=False,
+        )
+        self.n_train_tasks = n_train_tasks
+        self.n_test_tasks = n_test_tasks
+        self.train_tasks: list[Task] = list(train_tasks) if train_tasks is not None else []
+        self.test_tasks: list[Task] = list(test_tasks) if test_tasks is not None else []
+        self.max_episode_steps = max_episode_steps
+        self.adapt_gradient_steps = adapt_gradient_steps
+        self.adapt_batch_size = adapt_batch_size
+        self.adapt_learning_rate = adapt_learning_rate
+        self.adapt_buffer_size = adapt_buffer_size
+        # Adaptation state (meta-test), never saved: see reset_adaptation()
+        self._adapted: dict[str, Any] | None = None
+        self._adapt_buffer: ReplayBuffer | None = None
+        self._adapt_episode_steps = 0
+        self.adapt_stats: dict[str, float] = {}
+        if self.env is not None:
+            self._check_env()
+        if _init_setup_model:
+            self._setup_model()
+
+    # ------------------------------------------------------------------------------------------
+    # Set-up
+    # ------------------------------------------------------------------------------------------
+    def _check_env(self) -> None:
+        """Clear errors for envs Fine-Tune cannot use."""
+        if not isinstance(self.observation_space, spaces.Box):
+            raise ValueError(f"FineTune needs a Box observation space, got {self.observation_space}")
+        if self._vec_normalize_env is not None:
+            raise ValueError(
+                "VecNormalize is not supported: the adaptation API passes raw observations and rewards, "
+                "as for every algorithm of the project"
+            )
+        check_task_vec_env(self.env, "FineTune")
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        if self.env is not None:
+            if not self.train_tasks:
+                train, test = draw_train_test_tasks(self.env, self.n_train_tasks, self.n_test_tasks, self.seed)
+                self.train_tasks = train
+                if not self.test_tasks:
+                    self.test_tasks = test
+            if self.max_episode_steps is None:
+                spec = self.env.get_attr("spec", indices=[0])[0]
+                limit = getattr(spec, "max_episode_steps", None)
+                self.max_episode_steps = int(limit) if limit is not None else None
+        self.reset_adaptation()
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "_adapted", "_adapt_buffer", "_adapt_episode_steps", "adapt_stats"]
+
+    # ------------------------------------------------------------------------------------------
+    # Meta-training on the mixture of the training tasks
+    # ------------------------------------------------------------------------------------------
+    def _set_random_train_tasks(self, env_indices: Iterable[int]) -> None:
+        """Give each env a training task drawn uniformly; it takes effect at that env's next reset."""
+        assert self.env is not None
+        for index in env_indices:
+            task = self.train_tasks[np.random.randint(len(self.train_tasks))]
+            self.env.env_method("set_task", task, indices=[int(index)])
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        # Learning always continues from the pretrained policy, never from a fine-tuned copy.
+        self.reset_adaptation()
+        if not self.train_tasks:
+            raise ValueError("FineTune has no training tasks: construct it with a task-family env or pass train_tasks")
+        assert self.env is not None
+        will_reset = reset_num_timesteps or self._last_obs is None
+        env_indices = range(self.env.num_envs)
+        if will_reset:  # the tasks of the first episodes (the reset below applies them)
+            self._set_random_train_tasks(env_indices)
+        result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        if will_reset:  # set_task is sticky until the next reset: keep one task pending per env
+            self._set_random_train_tasks(env_indices)
+        return result
+
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: np.ndarray | dict[str, np.ndarray],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """
+        Store the transitions (SB3), then draw the task of the episode *after* the one that has
+        just started in every env whose episode ended.
+
+        A VecEnv resets a finished env inside ``step`` and ``set_task`` takes effect at the next
+        reset, so each env always holds one pending task: the auto-reset that ended an episode
+        applied the task drawn at the previous episode end, and no transition ever runs on a task
+        other than its episode's.
+        """
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        finished = np.flatnonzero(dones)
+        if len(finished) > 0:
+            self._set_random_train_tasks(finished.tolist())
+
+    def learn(
+        self: SelfFineTune,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "FineTune",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfFineTune:
+        """
+        Meta-train: SAC (or soft discrete SAC) on the mixture of the training tasks, one task per episode.
+
+        :param total_timesteps: env steps to collect
+        :param callback: SB3 callback(s), called once per env step
+        :param log_interval: dump the logs every ``log_interval`` episodes
+        :param tb_log_name: TensorBoard run name
+        :param reset_num_timesteps: restart the step counter
+        :param progress_bar: show a progress bar
+        """
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    # ------------------------------------------------------------------------------------------
+    # Adaptation API (shared by every algorithm of the project; SB3's predict never sees rewards)
+    # ------------------------------------------------------------------------------------------
+    def reset_adaptation(self) -> None:
+        """Forget the current task: drop the fine-tuned copy and start a fresh buffer (k = 0: pretrained policy)."""
+        self._adapted = None
+        self._adapt_buffer = ReplayBuffer(
+            self.adapt_buffer_size,
+            self.observation_space,
+            self.action_space,
+            device=self.device,
+            n_envs=1,
+            handle_timeout_termination=True,
+        )
+        self._adapt_episode_steps = 0
+        self.adapt_stats = {}
+
+    @property
+    def n_observed(self) -> int:
+        """Transitions of the current task observed since :meth:`reset_adaptation`."""
+        return 0 if self._adapt_buffer is None else self._adapt_buffer.size()
+
+    @property
+    def adapted_policy(self) -> BasePolicy:
+        """The policy :meth:`predict` acts with: the fine-tuned copy, or the pretrained policy before any adaptation."""
+        return self.policy if self._adapted is None else self._adapted["policy"]
+
+    def observe(self, obs: np.ndarray, action: Any, reward: float, next_obs: np.ndarray, done: bool) -> None:
+        """
+        Record one transition of the new task in its own replay buffer.
+
+        :param obs: observation before the action
+        :param action: the action sent to the env (env units for Box, an index for Discrete), as from :meth:`predict`
+        :param reward: reward received
+        :param next_obs: observation after the action (the terminal observation when ``done``)
+        :param done: the episode ended (terminated or truncated); an end at ``max_episode_steps`` steps is taken
+            as a time-limit truncation (bootstrapped), any other as a terminal state
+        """
+        if self._adapt_buffer is None:
+            self.reset_adaptation()
+        assert self._adapt_buffer is not None
+        obs_shape = self.observation_space.shape
+        assert obs_shape is not None
+        obs_arr = np.asarray(obs, dtype=np.float32)
+        next_obs_arr = np.asarray(next_obs, dtype=np.float32)
+        if obs_arr.size != int(np.prod(obs_shape)) or next_obs_arr.size != int(np.prod(obs_shape)):
+            raise ValueError(f"observe() takes one transition: obs and next_obs of shape {obs_shape}, got {np.shape(obs)}")
+        if isinstance(self.action_space, spaces.Box):
+            env_action = np.clip(np.asarray(action, dtype=np.float32).reshape(self.action_space.shape), *self._action_bounds())
+            buffer_action = self.policy.scale_action(env_action).reshape(1, -1)
+        else:
+            buffer_action = np.array([[int(np.asarray(action).reshape(-1)[0])]])
+        self._adapt_episode_steps += 1
+        done = bool(np.asarray(done).reshape(-1)[0])
+        truncated = done and self.max_episode_steps is not None and self._adapt_episode_steps >= self.max_episode_steps
+        self._adapt_buffer.add(
+            obs_arr.reshape(1, *obs_shape),
+            next_obs_arr.reshape(1, *obs_shape),
+            buffer_action,
+            np.array([float(np.asarray(reward).reshape(-1)[0])], dtype=np.float32),
+            np.array([done]),
+            [{"TimeLimit.truncated": truncated}],
+        )
+        if done:
+            self._adapt_episode_steps = 0
+
+    def _action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        assert isinstance(self.action_space, spaces.Box)
+        return self.action_space.low, self.action_space.high
+
+    def adapt(self) -> None:
+        """
+        Fine-tune on the new task: ``adapt_gradient_steps`` soft actor-critic steps on its observed transitions.
+
+        The first call after :meth:`reset_adaptation` copies the pretrained networks, optimizers and entropy
+        coefficient; later calls continue from the copy. With nothing observed the policy stays as it is.
+        The losses of the last call are in :attr:`adapt_stats` (``critic_loss``, ``actor_loss``, ``ent_coef``, ...).
+        """
+        if self.n_observed == 0 or self.adapt_gradient_steps == 0:
+            return
+        if self._adapted is None:
+            self._adapted = self._copy_pretrained()
+        with self._adaptation_state():
+            self.train(gradient_steps=self.adapt_gradient_steps, batch_size=self.adapt_batch_size or self.batch_size)
+            assert self._logger is not None
+            self.adapt_stats = {key.split("/", 1)[-1]: float(v) for key, v in self._logger.name_to_value.items()}
+
+    def _copy_pretrained(self) -> dict[str, Any]:
+        """The adaptation state at k = 0: copies of the pretrained policy (with its optimizers) and entropy coefficient."""
+        # One deepcopy, so that the copied optimizers refer to the copied parameters.
+        policy, log_ent_coef, ent_coef_optimizer = copy.deepcopy((self.policy, self.log_ent_coef, self.ent_coef_optimizer))
+        lr = self.adapt_learning_rate if self.adapt_learning_rate is not None else float(self.lr_schedule(1.0))
+        return dict(
+            policy=policy,
+            log_ent_coef=log_ent_coef,
+            ent_coef_optimizer=ent_coef_optimizer,
+            replay_buffer=self._adapt_buffer,
+            lr_schedule=ConstantSchedule(lr),
+            _n_updates=0,
+            _logger=Logger(folder=None, output_formats=[]),
+        )
+
+    @contextmanager
+    def _adaptation_state(self) -> Iterator[None]:
+        """Swap the fine-tuned copy and the new task's buffer in, so that ``train`` runs unchanged on them."""
+        assert self._adapted is not None
+        adapted = self._adapted
+        missing = object()  # _logger does not exist before the first learn() / set_logger()
+        pretrained = {name: getattr(self, name, missing) for name in _ADAPTATION_STATE}
+        adapted["replay_buffer"] = self._adapt_buffer
+        adapted["_logger"].name_to_value.clear()
+        adapted["_logger"].name_to_count.clear()
+        try:
+            for name in _ADAPTATION_STATE:
+                setattr(self, name, adapted[name])
+            self._refresh_aliases()
+            yield
+        finally:
+            for name in _ADAPTATION_STATE:
+                adapted[name] = getattr(self, name)
+                if pretrained[name] is missing:
+                    delattr(self, name)
+                else:
+                    setattr(self, name, pretrained[name])
+            self._refresh_aliases()
+
+    def _refresh_aliases(self) -> None:
+        self._create_aliases()
+        self.batch_norm_stats = get_parameters_by_name(self.critic, ["running_"])
+        self.batch_norm_stats_target = get_parameters_by_name(self.critic_target, ["running_"])
+
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """
+        Act with the fine-tuned policy (the pretrained one before any :meth:`adapt`), SB3 signature.
+
+        :param observation: the input observation
+        :param state: unused (no recurrent state)
+        :param episode_start: unused
+        :param deterministic: return deterministic actions
+        :return: the actions and ``None``
+        """
+        return self.adapted_policy.predict(observation, state, episode_start, deterministic)
