@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback
 
 import sb3_pearl  # noqa: F401  (registers the envs)
 from sb3_pearl.envs.point_goal import PointGoalMetaEnv
@@ -59,3 +60,15 @@ def make_discrete_env() -> gym.Env:
 @pytest.fixture
 def tiny_kwargs() -> dict[str, Any]:
     return {key: (dict(value) if isinstance(value, dict) else value) for key, value in TINY.items()}
+
+
+class CountSteps(BaseCallback):
+    """Counts ``on_step`` calls (one per VecEnv step)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls = 0
+
+    def _on_step(self) -> bool:
+        self.calls += 1
+        return True

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
@@ -17,6 +16,7 @@ import sb3_pearl  # noqa: F401  (registers the task families)
 from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task
 from sb3_pearl.maml import MAML
 from sb3_pearl.maml.maml import EpisodeBatch, TaskSamples
+from tests.conftest import CountSteps
 
 th.set_num_threads(1)
 
@@ -208,16 +208,6 @@ def test_second_order_term_flows_through_inner_step() -> None:
         expected -= model.inner_lr * th.nn.utils.parameters_to_vector(hvp) / len(pre)
     assert (second - first).norm() > 1e-4 * second.norm()
     th.testing.assert_close(second - first, expected, rtol=1e-3, atol=1e-6)
-
-
-class CountSteps(BaseCallback):
-    def __init__(self) -> None:
-        super().__init__()
-        self.calls = 0
-
-    def _on_step(self) -> bool:
-        self.calls += 1
-        return True
 
 
 def test_learn_save_load_identical_actions(tmp_path: Any) -> None:

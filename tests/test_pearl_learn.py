@@ -10,23 +10,12 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.envs.point_goal import PointGoalMetaEnv
-from tests.conftest import make_discrete_env, make_point_env
-
-
-class CountSteps(BaseCallback):
-    def __init__(self) -> None:
-        super().__init__()
-        self.calls = 0
-
-    def _on_step(self) -> bool:
-        self.calls += 1
-        return True
+from tests.conftest import CountSteps, make_discrete_env, make_point_env
 
 
 def _assert_rewards_match_tasks(model: PEARLPlus) -> None:
