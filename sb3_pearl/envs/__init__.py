@@ -23,6 +23,7 @@ FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "AntVelMeta-v0": ("sb3_pearl.envs.ant_vel:AntVelMetaEnv", {"max_episode_steps": 200}),
     "AntDirMeta-v0": ("sb3_pearl.envs.ant_dir:AntDirMetaEnv", {"max_episode_steps": 200}),
     "AntGoalMeta-v0": ("sb3_pearl.envs.ant_goal:AntGoalMetaEnv", {"max_episode_steps": 200}),
+    "HighwayMergeMeta-v0": ("sb3_pearl.envs.highway_merge:HighwayMergeMetaEnv", {"max_episode_steps": 60}),
 }
 
 
