@@ -1,0 +1,191 @@
+"""Callbacks: the meta-test protocol during training (SB3's ``EvalCallback`` for meta-RL)."""
+
+from __future__ import annotations
+
+import csv
+import os
+from typing import Any
+
+import gymnasium as gym
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_pearl.common.evaluation import SUMMARY_COLUMNS, MetaTestResult, check_adaptive, get_test_tasks, meta_test
+from sb3_pearl.envs.task_protocol import Task
+
+
+class MetaTestCallback(BaseCallback):
+    """
+    Run the meta-test protocol (:func:`sb3_pearl.common.evaluation.meta_test`) every ``eval_freq`` calls.
+
+    The numbers go to the model's logger under ``meta_test/``: ``return_k<k>``,
+    ``violation_rate_k<k>``, ``cvar10_k<k>`` for every k, plus ``return_prior`` (k = 0) and
+    ``return_adapted`` (k = ``n_adapt``). ``last_mean_reward`` is the adapted return (k = ``n_adapt``),
+    the score of the best model (``best_model.zip`` in ``best_model_save_path``) and of Optuna trials.
+    Each evaluation is appended to ``<log_path>/meta_test_history.csv``.
+
+    :param eval_env: a task-family env (gymnasium env or a VecEnv of one env)
+    :param eval_freq: evaluate every ``eval_freq`` calls (one call per VecEnv step); <= 0 disables
+    :param n_tasks: test tasks per evaluation (None: all of the model's test tasks)
+    :param n_adapt: last trajectory index K (k = 0..K)
+    :param n_repeats: repeats per task
+    :param deterministic: deterministic actions
+    :param tasks: explicit test tasks (default: the model's ``test_tasks``)
+    :param sample_tasks: draw ``n_tasks`` tasks from ``eval_env`` (a shifted distribution) instead
+    :param seed: seed of the task draw and of the env's first reset
+    :param best_model_save_path: folder of ``best_model.zip`` (None: not saved)
+    :param log_path: folder of ``meta_test_history.csv`` (None: not written)
+    :param verbose: 0 silent, 1 one line per evaluation
+    """
+
+    def __init__(
+        self,
+        eval_env: gym.Env | VecEnv,
+        eval_freq: int = 10_000,
+        n_tasks: int | None = None,
+        n_adapt: int = 5,
+        n_repeats: int = 1,
+        deterministic: bool = True,
+        tasks: list[Task] | None = None,
+        sample_tasks: bool = False,
+        seed: int | None = None,
+        best_model_save_path: str | None = None,
+        log_path: str | None = None,
+        verbose: int = 1,
+    ) -> None:
+        super().__init__(verbose)
+        self.eval_env = eval_env
+        self.eval_freq = eval_freq
+        self.n_tasks = n_tasks
+        self.n_adapt = n_adapt
+        self.n_repeats = n_repeats
+        self.deterministic = deterministic
+        self.tasks = tasks
+        self.sample_tasks = sample_tasks
+        self.seed = seed
+        self.best_model_save_path = best_model_save_path
+        self.log_path = log_path
+        self.best_mean_reward = -float("inf")
+        self.last_mean_reward = -float("inf")
+        self.last_result: MetaTestResult | None = None
+        self.n_evaluations = 0
+
+    def _init_callback(self) -> None:
+        check_adaptive(self.model)
+        if self.tasks is None:
+            self.tasks = get_test_tasks(self.model, self.eval_env, self.n_tasks, self.seed, sample=self.sample_tasks)
+        for folder in (self.best_model_save_path, self.log_path):
+            if folder is not None:
+                os.makedirs(folder, exist_ok=True)
+
+    def _on_step(self) -> bool:
+        if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:
+            self.evaluate()
+        return True
+
+    def evaluate(self) -> MetaTestResult:
+        """Run the protocol now, log it and keep the best model."""
+        assert self.tasks is not None
+        result = meta_test(
+            self.model,
+            self.eval_env,
+            self.tasks,
+            n_adapt=self.n_adapt,
+            n_repeats=self.n_repeats,
+            deterministic=self.deterministic,
+            seed=self.seed,
+        )
+        self.model.reset_adaptation()  # type: ignore[attr-defined]
+        self.last_result = result
+        self.n_evaluations += 1
+        for entry in result.summary:
+            k = entry["k"]
+            self.logger.record(f"meta_test/return_k{k}", entry["return_mean"])
+            self.logger.record(f"meta_test/violation_rate_k{k}", entry["violation_rate"])
+            self.logger.record(f"meta_test/cvar10_k{k}", entry["return_cvar10"])
+        prior, adapted = result.summary_at(0), result.summary_at(self.n_adapt)
+        self.logger.record("meta_test/return_prior", prior["return_mean"])
+        self.logger.record("meta_test/return_adapted", adapted["return_mean"])
+        self.logger.record("meta_test/violation_rate_prior", prior["violation_rate"])
+        self.logger.record("meta_test/cum_violations", adapted["cum_violations"])
+        self.last_mean_reward = float(adapted["return_mean"])
+        if self.verbose >= 1:
+            print(
+                f"Meta-test num_timesteps={self.num_timesteps}: return k=0 {prior['return_mean']:.2f}, "
+                f"k={self.n_adapt} {adapted['return_mean']:.2f}; violation rate k=0 {prior['violation_rate']:.2f}"
+            )
+        if self.log_path is not None:
+            self._append_history(result)
+        if self.last_mean_reward > self.best_mean_reward:
+            self.best_mean_reward = self.last_mean_reward
+            if self.best_model_save_path is not None:
+                self.model.save(os.path.join(self.best_model_save_path, "best_model"))
+        self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        self.logger.dump(self.num_timesteps)
+        return result
+
+    def _append_history(self, result: MetaTestResult) -> None:
+        assert self.log_path is not None
+        path = os.path.join(self.log_path, "meta_test_history.csv")
+        new_file = not os.path.exists(path)
+        with open(path, "a", newline="") as file:
+            writer = csv.DictWriter(file, fieldnames=["timesteps", *SUMMARY_COLUMNS], extrasaction="ignore")
+            if new_file:
+                writer.writeheader()
+            for entry in result.summary:
+                writer.writerow({"timesteps": self.num_timesteps, **entry})
+
+
+class MetaTestTrialCallback(MetaTestCallback):
+    """
+    :class:`MetaTestCallback` reporting the adapted return to an Optuna trial (rl_zoo3's ``TrialEvalCallback`` interface).
+
+    :param eval_env: a task-family env
+    :param trial: the Optuna trial
+    :param n_eval_episodes: test tasks per evaluation
+    :param eval_freq: evaluate every ``eval_freq`` calls
+    :param deterministic: deterministic actions
+    :param verbose: verbosity
+    :param best_model_save_path: folder of ``best_model.zip`` (None: not saved)
+    :param log_path: folder of the evaluation history (None: not written)
+    :param meta_test_kwargs: other :class:`MetaTestCallback` arguments (n_adapt, n_repeats, ...)
+    """
+
+    def __init__(
+        self,
+        eval_env: VecEnv,
+        trial: Any,
+        n_eval_episodes: int = 5,
+        eval_freq: int = 10_000,
+        deterministic: bool = True,
+        verbose: int = 0,
+        best_model_save_path: str | None = None,
+        log_path: str | None = None,
+        **meta_test_kwargs: Any,
+    ) -> None:
+        super().__init__(
+            eval_env,
+            eval_freq=eval_freq,
+            n_tasks=n_eval_episodes,
+            deterministic=deterministic,
+            best_model_save_path=best_model_save_path,
+            log_path=log_path,
+            verbose=verbose,
+            **meta_test_kwargs,
+        )
+        self.trial = trial
+        self.eval_idx = 0
+        self.is_pruned = False
+
+    def _on_step(self) -> bool:
+        if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:
+            self.evaluate()
+            self.eval_idx += 1
+            self.trial.report(self.last_mean_reward, self.eval_idx)
+            if self.trial.should_prune():
+                self.is_pruned = True
+                return False
+        return True
+
+
+__all__ = ["MetaTestCallback", "MetaTestTrialCallback"]

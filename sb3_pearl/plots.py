@@ -1,0 +1,264 @@
+"""Figures of the meta-test (matplotlib, Agg backend): adaptation curves, violation bars, b_min scatter, speed profiles.
+
+Command line, over one or more run folders (each holding ``meta_test.json``) or JSON files::
+
+    python -m sb3_pearl.plots logs/pearl/SafePointGoalMeta-v0_1 logs/pearlplus/SafePointGoalMeta-v0_1 -o cmp.png
+
+writes ``cmp.png`` (adaptation curves: return and violation rate vs k, one line per run),
+``cmp_violations.png`` (violation-rate bars at k = 0, 1, 3, 5) and, when the runs recorded them
+(the merge family), ``cmp_b_min.png`` and ``cmp_speed.png``. ``--kind`` picks one figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from sb3_pearl.common.evaluation import PAPER_KS, MetaTestResult  # noqa: E402
+
+KINDS = ("adaptation", "violations", "b_min", "speed")
+
+
+def load_run(path: str | os.PathLike[str]) -> tuple[str, MetaTestResult]:
+    """
+    Read a run's meta-test.
+
+    :param path: a run folder (with ``meta_test.json``) or the JSON file itself
+    :return: a label (the algorithm's zoo name, else the folder name) and the result
+    """
+    path = Path(path)
+    json_path = path / "meta_test.json" if path.is_dir() else path
+    if not json_path.is_file():
+        raise FileNotFoundError(f"{json_path} not found: pass a run folder written by train.py (or its meta_test.json)")
+    result = MetaTestResult.from_json(json_path)
+    label = str(result.config.get("algo") or json_path.parent.parent.name or json_path.parent.name)
+    return label, result
+
+
+def load_runs(paths: Sequence[str | os.PathLike[str]], labels: Sequence[str] | None = None) -> dict[str, MetaTestResult]:
+    """
+    Read several runs; labels that repeat get the run folder's name appended.
+
+    :param paths: run folders or JSON files
+    :param labels: explicit labels (same length as ``paths``)
+    :return: results by label, in order
+    """
+    if labels is not None and len(labels) != len(paths):
+        raise ValueError(f"got {len(labels)} labels for {len(paths)} runs")
+    loaded = [load_run(p) for p in paths]
+    names = list(labels) if labels is not None else [label for label, _ in loaded]
+    runs: dict[str, MetaTestResult] = {}
+    for name, path, (_, result) in zip(names, paths, loaded):
+        key = name if name not in runs and names.count(name) == 1 else f"{name} ({Path(path).name})"
+        runs[key] = result
+    return runs
+
+
+def _yerr(rate: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Asymmetric error bars of an interval, never negative (nan intervals give no bar)."""
+    return np.nan_to_num(np.maximum(np.stack([rate - low, high - rate]), 0.0))
+
+
+def plot_adaptation(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str], title: str = "") -> None:
+    """
+    Adaptation curves: mean return (+- std) and violation rate (95% Wilson interval) against k, one line per run.
+
+    :param runs: results by label
+    :param path: PNG file
+    :param title: figure title
+    """
+    fig, (ax_ret, ax_viol) = plt.subplots(1, 2, figsize=(10, 3.8))
+    for label, result in runs.items():
+        ks = np.array([e["k"] for e in result.summary])
+        mean = np.array([e["return_mean"] for e in result.summary], dtype=float)
+        std = np.array([e["return_std"] for e in result.summary], dtype=float)
+        (line,) = ax_ret.plot(ks, mean, marker="o", label=label)
+        ax_ret.fill_between(ks, mean - std, mean + std, color=line.get_color(), alpha=0.15)
+        rate = np.array([e["violation_rate"] for e in result.summary], dtype=float)
+        low = np.array([e["violation_ci_low"] for e in result.summary], dtype=float)
+        high = np.array([e["violation_ci_high"] for e in result.summary], dtype=float)
+        ax_viol.errorbar(ks, rate, yerr=_yerr(rate, low, high), marker="o", capsize=3, label=label, color=line.get_color())
+    ax_ret.set_xlabel("trajectory k (0 = prior)")
+    ax_ret.set_ylabel("return")
+    ax_ret.set_title("return (mean +- std)")
+    ax_viol.set_xlabel("trajectory k (0 = prior)")
+    ax_viol.set_ylabel("violation rate")
+    ax_viol.set_ylim(-0.02, 1.02)
+    ax_viol.set_title("violation rate (95% CI)")
+    for ax in (ax_ret, ax_viol):
+        ax.grid(alpha=0.3)
+        ax.xaxis.get_major_locator().set_params(integer=True)  # type: ignore[call-arg]
+    ax_ret.legend(fontsize="small")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_violation_bars(
+    runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str], ks: Sequence[int] = PAPER_KS, title: str = ""
+) -> None:
+    """
+    Violation rate at the paper's columns (k = 0, 1, 3, 5) as grouped bars with 95% intervals.
+
+    :param runs: results by label
+    :param path: PNG file
+    :param ks: the trajectories shown
+    :param title: figure title
+    """
+    fig, ax = plt.subplots(figsize=(max(5, 1.5 * len(ks) * max(1, len(runs)) / 2), 3.8))
+    width = 0.8 / max(1, len(runs))
+    for i, (label, result) in enumerate(runs.items()):
+        entries = [e for e in result.summary if e["k"] in ks]
+        xs = np.array([list(ks).index(e["k"]) for e in entries]) + (i - (len(runs) - 1) / 2) * width
+        rate = np.array([e["violation_rate"] for e in entries], dtype=float)
+        low = np.array([e["violation_ci_low"] for e in entries], dtype=float)
+        high = np.array([e["violation_ci_high"] for e in entries], dtype=float)
+        ax.bar(xs, rate, width, yerr=_yerr(rate, low, high), capsize=3, label=label)
+    ax.set_xticks(range(len(ks)), [f"{k} traj." for k in ks])
+    ax.set_ylabel("violation rate")
+    ax.set_ylim(0, 1.02)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize="small")
+    ax.set_title(title or "violation rate before (0) and after adaptation")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def has_b_min(runs: Mapping[str, MetaTestResult]) -> bool:
+    """Whether any run recorded the merge family's ``b_min``."""
+    return any(np.isfinite(float(row.get("b_min", np.nan))) for result in runs.values() for row in result.rows)
+
+
+def plot_b_min(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str], title: str = "") -> None:
+    """
+    b_min (the paper's minimum braking at the merge, m/s^2) of every merged trajectory against k, one colour per run.
+
+    :param runs: results by label
+    :param path: PNG file
+    :param title: figure title
+    """
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    rng = np.random.default_rng(0)
+    offsets = np.linspace(-0.2, 0.2, max(1, len(runs))) if len(runs) > 1 else np.zeros(1)
+    for offset, (label, result) in zip(offsets, runs.items()):
+        rows = [row for row in result.rows if np.isfinite(float(row.get("b_min", np.nan)))]
+        ks = np.array([row["k"] for row in rows], dtype=float)
+        values = np.array([row["b_min"] for row in rows], dtype=float)
+        ax.scatter(ks + offset + rng.uniform(-0.05, 0.05, len(ks)), values, s=12, alpha=0.7, label=label)
+    ax.set_xlabel("trajectory k (0 = prior)")
+    ax.set_ylabel("b_min [m/s^2]")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    ax.set_title(title or "minimum braking at the merge")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def has_traces(runs: Mapping[str, MetaTestResult], key: str = "ego_speed") -> bool:
+    """Whether any run recorded per-step traces of ``key``."""
+    return any(key in trace for result in runs.values() for trace in result.traces)
+
+
+def plot_speed_profiles(
+    runs: Mapping[str, MetaTestResult],
+    path: str | os.PathLike[str],
+    key: str = "ego_speed",
+    after_k: int | None = None,
+    title: str = "",
+) -> None:
+    """
+    Speed profiles before (k = 0) and after adaptation (k = ``after_k``, default the last k): one row per run.
+
+    :param runs: results by label
+    :param path: PNG file
+    :param key: the traced info entry
+    :param after_k: the trajectory shown as "after adaptation"
+    :param title: figure title
+    """
+    n = max(1, len(runs))
+    fig, axes = plt.subplots(n, 2, figsize=(10, 3 * n), squeeze=False, sharey=True)
+    for row_axes, (label, result) in zip(axes, runs.items()):
+        last = after_k if after_k is not None else max((t["k"] for t in result.traces), default=0)
+        for ax, k, name in (
+            (row_axes[0], 0, "before adaptation (k = 0)"),
+            (row_axes[1], last, f"after adaptation (k = {last})"),
+        ):
+            for trace in result.traces:
+                if trace["k"] == k and key in trace:
+                    ax.plot(np.arange(len(trace[key])), trace[key], alpha=0.6, lw=1)
+            ax.set_title(f"{label}: {name}", fontsize="medium")
+            ax.set_xlabel("policy step")
+            ax.grid(alpha=0.3)
+        row_axes[0].set_ylabel(f"{key} [m/s]" if "speed" in key else key)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_all(
+    runs: Mapping[str, MetaTestResult], output: str | os.PathLike[str], kinds: Sequence[str] = KINDS, title: str = ""
+) -> list[str]:
+    """
+    Write the figures of ``kinds`` that the runs have data for.
+
+    The first figure goes to ``output``; the others next to it as ``<stem>_<kind>.png``.
+
+    :param runs: results by label
+    :param output: PNG path
+    :param kinds: among :data:`KINDS`
+    :param title: figure title
+    :return: the written paths
+    """
+    output = Path(output)
+    written: list[str] = []
+    for kind in kinds:
+        if kind == "b_min" and not has_b_min(runs):
+            continue
+        if kind == "speed" and not has_traces(runs):
+            continue
+        path = output if not written else output.with_name(f"{output.stem}_{kind}{output.suffix or '.png'}")
+        if kind == "adaptation":
+            plot_adaptation(runs, path, title)
+        elif kind == "violations":
+            plot_violation_bars(runs, path, title=title)
+        elif kind == "b_min":
+            plot_b_min(runs, path, title)
+        elif kind == "speed":
+            plot_speed_profiles(runs, path, title=title)
+        else:
+            raise ValueError(f"unknown figure kind {kind!r}: expected one of {KINDS}")
+        written.append(str(path))
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Command line: ``python -m sb3_pearl.plots RUN_DIR [RUN_DIR ...] -o out.png``."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", help="run folders (logs/<algo>/<EnvId>_<n>) or meta_test.json files")
+    parser.add_argument("-o", "--output", default="adaptation.png", help="PNG file of the first figure")
+    parser.add_argument("--kind", choices=[*KINDS, "all"], default="all", help="which figure (default: every one with data)")
+    parser.add_argument("--labels", nargs="+", default=None, help="legend labels, one per run")
+    parser.add_argument("--title", default="", help="figure title")
+    args = parser.parse_args(argv)
+    runs = load_runs(args.runs, args.labels)
+    kinds = KINDS if args.kind == "all" else (args.kind,)
+    for path in plot_all(runs, args.output, kinds, args.title):
+        print(f"Saved {path}")
+
+
+if __name__ == "__main__":
+    main()
