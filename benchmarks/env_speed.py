@@ -33,6 +33,20 @@ def _point_maze_base() -> gym.Env:
     return gym.make("PointMaze_MediumDense-v3", continuing_task=True, reset_target=False, max_episode_steps=300)
 
 
+def _stock_merge() -> gym.Env:
+    """highway-env's stock ``merge-v0`` at the merge family's simulation / policy frequencies (10 Hz / 2 Hz)."""
+    import warnings
+
+    import highway_env
+
+    gym.register_envs(highway_env)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # "merge-v0 is out of date": it is the paper-era env
+        env = gym.make("merge-v0")
+    env.unwrapped.configure({"simulation_frequency": 10, "policy_frequency": 2})
+    return env
+
+
 # id -> (meta env factory, base env name, base env factory)
 FAMILIES: dict[str, tuple[EnvFactory, str, EnvFactory]] = {
     "HalfCheetahVelMeta-v0": (
@@ -58,6 +72,8 @@ FAMILIES: dict[str, tuple[EnvFactory, str, EnvFactory]] = {
         lambda: gym.make("PointGoalMeta-v0"),
     ),
     "PointMazeGoalMeta-v0": (lambda: gym.make("PointMazeGoalMeta-v0"), "PointMaze_MediumDense-v3", _point_maze_base),
+    # target ratio >= 10 (issue 3): the meta env replaces highway-env's hot spots, see docs/highway_merge.md
+    "HighwayMergeMeta-v0": (lambda: gym.make("HighwayMergeMeta-v0"), "merge-v0 (10 Hz / 2 Hz)", _stock_merge),
 }
 
 
