@@ -245,7 +245,7 @@ class MetaExperimentManager(ExperimentManager):
         self.meta_test_kwargs: dict[str, Any] = dict(META_TEST_DEFAULTS)
         self.adaptive = has_adaptation_api(ALGOS[algo])
         if self.tensorboard_log is not None and importlib.util.find_spec("tensorboard") is None:
-            raise ImportError("-tb/--tensorboard-log needs the tensorboard package, which is not installed: pip install tensorboard")
+            raise ImportError("-tb/--tensorboard-log needs the tensorboard package (not installed): pip install tensorboard")
 
     # -- hyperparameters ---------------------------------------------------------------------------
     def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
