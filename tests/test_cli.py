@@ -1,0 +1,184 @@
+"""train.py / enjoy.py / plots end to end on a tiny budget (subprocesses), and their clear errors."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from sb3_pearl import PEARL, PEARLPlus
+from sb3_pearl.zoo import constructor_kwargs, register_algos
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV_ID = "SafePointGoalMeta-v0"
+# Shrinks the fast YAML entry to a second of training; kl_weight / latent_dim check that -params reach the model.
+TINY_PARAMS = [
+    "num_initial_steps:30",
+    "num_train_steps_per_itr:5",
+    "num_steps_prior:30",
+    "num_extra_rl_steps_posterior:30",
+    "n_train_tasks:4",
+    "n_test_tasks:3",
+    "meta_batch:2",
+    "batch_size:16",
+    "embedding_batch_size:8",
+    "kl_weight:0.37",
+    "latent_dim:3",
+    "meta_test:dict(n_adapt=2)",
+]
+
+
+def run(script: str, *args: str, check: bool = True, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    proc = subprocess.run(
+        [sys.executable, *([script] if script.startswith("-") else [str(ROOT / script)]), *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{script} {' '.join(args)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    return proc
+
+
+def train(folder: Path, algo: str = "pearlplus", *extra: str, params: list[str] = TINY_PARAMS, check: bool = True) -> Any:
+    return run(
+        "train.py",
+        *("--algo", algo, "--env", ENV_ID, "-f", str(folder), "--seed", "1", "--num-threads", "1"),
+        *("-n", "200", "--eval-freq", "100", "--eval-episodes", "2"),
+        *extra,
+        "-params",
+        *params,
+        check=check,
+    )
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("logs")
+    train(folder)
+    return folder
+
+
+def test_train_writes_zoo_layout_and_meta_test(trained: Path) -> None:
+    run_dir = trained / "pearlplus" / f"{ENV_ID}_1"
+    for name in (f"{ENV_ID}.zip", "best_model.zip", "meta_test.csv", "meta_test.json", "adaptation.png", "meta_test_history.csv"):
+        assert (run_dir / name).is_file(), name
+    for name in ("config.yml", "args.yml", "command.txt"):
+        assert (run_dir / ENV_ID / name).is_file(), name
+    lines = (run_dir / "meta_test.csv").read_text().splitlines()
+    assert lines[0] == "task,repeat,k,return,cost,length,violated"
+    assert len(lines) == 1 + 3 * 3  # 3 saved test tasks, k = 0..2
+    history = (run_dir / "meta_test_history.csv").read_text().splitlines()
+    assert len(history) == 1 + 2 * 3  # evaluations at 100 and 200 steps, k = 0..2
+    with open(run_dir / ENV_ID / "config.yml") as file:
+        config = yaml.load(file, Loader=yaml.UnsafeLoader)
+    assert config["kl_weight"] == 0.37
+
+
+def test_params_reach_the_saved_model(trained: Path) -> None:
+    model = PEARLPlus.load(trained / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip")
+    assert model.kl_weight == 0.37
+    assert model.latent_dim == 3
+    assert len(model.test_tasks) == 3 and len(model.train_tasks) == 4
+    assert model.prior_coef == 0.1  # from zoo_hyperparams/pearlplus.yml
+
+
+def test_enjoy_prints_prior_and_posterior(trained: Path, tmp_path: Path) -> None:
+    plot = tmp_path / "enjoy.png"
+    proc = run(
+        "enjoy.py",
+        *("--algo", "pearlplus", "--env", ENV_ID, "-f", str(trained), "--no-render"),
+        *("--n-tasks", "2", "--n-adapt", "2", "--plot", str(plot)),
+    )
+    out = proc.stdout
+    assert out.count("Task ") == 2
+    assert out.count(" prior ") == 2 and out.count(" posterior ") == 4
+    assert "Summary over tasks" in out and "viol. rate" in out
+    assert plot.is_file() and (tmp_path / "enjoy_violations.png").is_file()
+    best = run("enjoy.py", "--algo", "pearlplus", "--env", ENV_ID, "-f", str(trained), "--no-render", "--load-best", "--n-adapt", "1")
+    assert "best_model.zip" in best.stdout
+
+
+def test_plots_cli(trained: Path, tmp_path: Path) -> None:
+    run_dir = trained / "pearlplus" / f"{ENV_ID}_1"
+    out = tmp_path / "cmp.png"
+    proc = run("-m", "sb3_pearl.plots", str(run_dir), str(run_dir / "meta_test.json"), "-o", str(out), "--labels", "a", "b")
+    assert out.is_file() and (tmp_path / "cmp_violations.png").is_file()
+    assert "Saved" in proc.stdout
+
+
+def test_pearl_subproc_checkpoints_progress(tmp_path: Path) -> None:
+    train(tmp_path, "pearl", "--vec-env", "subproc", "--save-freq", "100", "-P", params=[*TINY_PARAMS, "n_envs:2"])
+    run_dir = tmp_path / "pearl" / f"{ENV_ID}_1"
+    assert (run_dir / "meta_test.json").is_file() and (run_dir / "rl_model_200_steps.zip").is_file()
+    model = PEARL.load(run_dir / f"{ENV_ID}.zip")
+    assert model.prior_coef == 0.0 and model.kl_weight == 0.37
+
+
+def test_optimize_uses_the_meta_test(tmp_path: Path) -> None:
+    proc = train(
+        tmp_path,
+        "pearlplus",
+        *("-optimize", "--n-trials", "1", "--n-evaluations", "1", "--no-optim-plots", "--n-startup-trials", "1"),
+        params=[*TINY_PARAMS, "num_train_steps_per_itr:2"],
+    )
+    assert "Trial 0 finished with value" in proc.stderr + proc.stdout
+    assert "prior_coef" in proc.stdout  # the PEARL+ sampler's parameters
+    assert list((tmp_path / "pearlplus").glob("report_*.csv"))
+
+
+def test_unknown_algo_and_env(tmp_path: Path) -> None:
+    proc = run("train.py", "--algo", "nope", "--env", ENV_ID, "-f", str(tmp_path), check=False)
+    assert proc.returncode != 0 and "invalid choice: 'nope'" in proc.stderr and "pearlplus" in proc.stderr
+    proc = run("train.py", "--algo", "pearl", "--env", "SafePointGoalMta-v0", "-f", str(tmp_path), check=False)
+    assert proc.returncode != 0 and "not found in gym registry" in proc.stderr and ENV_ID in proc.stderr
+
+
+def test_yaml_key_the_algorithm_does_not_take(tmp_path: Path) -> None:
+    with open(ROOT / "zoo_hyperparams" / "pearl.yml") as file:
+        entry = yaml.safe_load(file)[ENV_ID]
+    conf = tmp_path / "bad.yml"
+    conf.write_text(yaml.safe_dump({ENV_ID: {**entry, "warp_factor": 9}}))
+    proc = run("train.py", "--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf), "-n", "10", check=False)
+    assert proc.returncode != 0
+    assert "PEARL does not take the hyperparameter(s) ['warp_factor']" in proc.stderr
+    assert "kl_weight" in proc.stderr  # the accepted ones are listed
+    # PEARL refuses the PEARL+ prior term before any env is built
+    proc = train(tmp_path, "pearl", params=["prior_coef:0.2"], check=False)
+    assert proc.returncode != 0 and "['prior_coef']" in proc.stderr
+
+
+def test_enjoy_missing_folder_and_other_env(trained: Path, tmp_path: Path) -> None:
+    proc = run("enjoy.py", "--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "nowhere"), "--no-render", check=False)
+    assert proc.returncode != 0 and "folder was not found" in proc.stderr
+    # a run folder renamed as if it held a PointGoalMeta-v0 model
+    other = tmp_path / "logs" / "pearlplus" / "PointGoalMeta-v0_1"
+    shutil.copytree(trained / "pearlplus" / f"{ENV_ID}_1", other)
+    (other / f"{ENV_ID}.zip").rename(other / "PointGoalMeta-v0.zip")
+    proc = run("enjoy.py", "--algo", "pearlplus", "--env", "PointGoalMeta-v0", "-f", str(tmp_path / "logs"), "--no-render", check=False)
+    assert proc.returncode != 0 and f"was trained on {ENV_ID}, not on PointGoalMeta-v0" in proc.stderr
+
+
+def test_every_yaml_entry_is_valid() -> None:
+    """Every key of zoo_hyperparams/pearl(plus).yml is a constructor kwarg or a zoo key, for every registered family."""
+    from sb3_pearl.envs import FAMILIES
+    from sb3_pearl.zoo import ZOO_SPECIAL_KEYS
+
+    register_algos()
+    for algo, cls in (("pearl", PEARL), ("pearlplus", PEARLPlus)):
+        with open(ROOT / "zoo_hyperparams" / f"{algo}.yml") as file:
+            entries = yaml.safe_load(file)
+        assert set(FAMILIES) <= set(entries), f"{algo}.yml misses {sorted(set(FAMILIES) - set(entries))}"
+        for env_id, entry in entries.items():
+            unknown = set(entry) - constructor_kwargs(cls) - ZOO_SPECIAL_KEYS
+            assert not unknown, f"{algo}.yml {env_id}: {unknown}"
+            assert isinstance(entry["learning_rate"], float) and entry["n_timesteps"] > 0

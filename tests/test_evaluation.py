@@ -1,0 +1,239 @@
+"""The meta-test protocol on a scripted stand-in model whose posterior is known, plus the callback on PEARL+."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium import spaces
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
+
+from sb3_pearl import PEARLPlus
+from sb3_pearl.common.callbacks import MetaTestCallback
+from sb3_pearl.common.evaluation import (
+    ROW_COLUMNS,
+    SUMMARY_COLUMNS,
+    MetaTestResult,
+    cvar,
+    get_test_tasks,
+    meta_test,
+    summarize,
+    wilson_interval,
+)
+from sb3_pearl.envs.task_protocol import MetaTaskEnv
+
+HORIZON = 3
+UNSAFE_ACTION = 3
+
+
+class GuessEnv(MetaTaskEnv, gym.Env):
+    """Task: a target action in {0, 1, 2}; reward 1 per step that plays it; action 3 costs 1; 3 steps.
+
+    ``info`` carries merge-family style extras: ``b_min`` on step 2 only, ``merged`` every step,
+    ``ego_speed`` (the step index) for the traces.
+    """
+
+    observation_space = spaces.Box(0.0, 1.0, (1,), np.float32)
+    action_space = spaces.Discrete(4)
+
+    def __init__(self) -> None:
+        self._init_task()
+        self.t = 0
+
+    def _sample_task(self, rng: np.random.Generator) -> dict[str, Any]:
+        return {"target": int(rng.integers(3))}
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        self._apply_pending_task()
+        self.t = 0
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        action = int(action)
+        self.t += 1
+        info: dict[str, Any] = {"cost": float(action == UNSAFE_ACTION), "merged": action == self._task["target"]}
+        info["ego_speed"] = float(self.t)
+        if self.t == 2:
+            info["b_min"] = 10.0 * self._task["target"] + action
+        reward = float(action == self._task["target"])
+        return np.full(1, self.t / HORIZON, np.float32), reward, False, self.t >= HORIZON, info
+
+
+class ScriptedModel:
+    """Stand-in with a known posterior.
+
+    Prior (k = 0): the unsafe action 3. After the j-th ``adapt()``: the rewarded action if one was
+    observed since the reset, else action j - 1 (explores 0, 1, 2 in turn). Records every call.
+    """
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+        self.observed: list[tuple[Any, ...]] = []
+        self.n_adapt = 0
+        self.action = UNSAFE_ACTION
+        self.predict_phases: list[int] = []
+
+    def reset_adaptation(self) -> None:
+        self.calls.append("reset")
+        self.observed = []
+        self.n_adapt = 0
+        self.action = UNSAFE_ACTION
+
+    def observe(self, obs: np.ndarray, action: Any, reward: float, next_obs: np.ndarray, done: bool) -> None:
+        self.calls.append("observe")
+        self.observed.append((np.asarray(obs).copy(), int(action), reward, np.asarray(next_obs).copy(), done))
+
+    def adapt(self) -> None:
+        self.calls.append("adapt")
+        self.n_adapt += 1
+        rewarded = [a for (_, a, r, _, _) in self.observed if r > 0]
+        self.action = rewarded[0] if rewarded else self.n_adapt - 1
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None, deterministic: bool = False) -> Any:
+        self.predict_phases.append(self.n_adapt)
+        return np.int64(self.action), None
+
+
+TASKS = [{"target": 0}, {"target": 2}]
+# return per (task, k) for n_adapt = 3, from the scripted posterior
+EXPECTED_RETURNS = {0: [0.0, 3.0, 3.0, 3.0], 1: [0.0, 0.0, 0.0, 3.0]}
+
+
+def run_protocol(env: Any = None, n_repeats: int = 1) -> tuple[ScriptedModel, MetaTestResult]:
+    model = ScriptedModel()
+    return model, meta_test(model, env if env is not None else GuessEnv(), TASKS, n_adapt=3, n_repeats=n_repeats, seed=0)
+
+
+def test_rows_and_k_indexing() -> None:
+    model, result = run_protocol(n_repeats=2)
+    assert [(r["task"], r["repeat"], r["k"]) for r in result.rows] == [
+        (t, rep, k) for t in range(2) for rep in range(2) for k in range(4)
+    ]
+    for row in result.rows:
+        assert row["return"] == EXPECTED_RETURNS[row["task"]][row["k"]]
+        assert row["length"] == HORIZON
+        # k = 0 is the prior (unsafe action 3 on every step); the scripted posterior never plays it
+        assert row["cost"] == (3.0 if row["k"] == 0 else 0.0)
+        assert row["violated"] is (row["k"] == 0)
+        assert row["merged"] == float(EXPECTED_RETURNS[row["task"]][row["k"]] > 0)
+    # call sequence per (task, repeat): reset, then 3 observes per trajectory with adapt between trajectories
+    per_episode = ["reset"] + ["observe"] * 3 + (["adapt"] + ["observe"] * 3) * 3
+    assert model.calls == per_episode * 4
+    # predict at trajectory k saw exactly k adapt() calls: k = 0 really used the prior
+    assert model.predict_phases == [k for _ in range(4) for k in range(4) for _ in range(HORIZON)]
+
+
+def test_observe_gets_every_transition() -> None:
+    model = ScriptedModel()
+    meta_test(model, GuessEnv(), [{"target": 1}], n_adapt=1)
+    # the last trajectory's transitions (k = 1): action 0 (nothing rewarded in k = 0), obs chain 0 -> 1/3 -> 2/3 -> 1
+    last = model.observed[-3:]
+    assert [a for (_, a, _, _, _) in last] == [0, 0, 0]
+    assert [float(o[0]) for (o, _, _, _, _) in last] == pytest.approx([0.0, 1 / 3, 2 / 3])
+    assert [float(n[0]) for (_, _, _, n, _) in last] == pytest.approx([1 / 3, 2 / 3, 1.0])
+    assert [d for (_, _, _, _, d) in last] == [False, False, True]
+
+
+def test_summary_numbers() -> None:
+    _, result = run_protocol()
+    s = {entry["k"]: entry for entry in result.summary}
+    assert list(s) == [0, 1, 2, 3]
+    assert s[0]["n"] == 2 and s[0]["return_mean"] == 0.0 and s[0]["return_std"] == 0.0
+    assert s[0]["violation_rate"] == 1.0
+    assert (s[0]["violation_ci_low"], s[0]["violation_ci_high"]) == pytest.approx(wilson_interval(2, 2))
+    assert s[0]["cum_violations"] == 1.0 and s[3]["cum_violations"] == 1.0
+    assert s[1]["return_mean"] == 1.5 and s[1]["return_std"] == 1.5 and s[1]["return_cvar10"] == 0.0
+    assert s[1]["violation_rate"] == 0.0
+    assert s[3]["return_mean"] == 3.0 and s[3]["return_cvar10"] == 3.0
+    # family extras: mean of the per-trajectory last value; b_min = 10 * target + action on step 2
+    assert s[0]["b_min_mean"] == pytest.approx(np.mean([0 + 3, 20 + 3]))
+    assert s[3]["merged_mean"] == 1.0
+    assert [e["k"] for e in result.paper_table()] == [0, 1, 3]
+    assert set(SUMMARY_COLUMNS) <= set(s[0])
+
+
+def test_statistics() -> None:
+    low, high = wilson_interval(0, 10)
+    assert low == 0.0 and high == pytest.approx(0.2775, abs=1e-4)
+    low, high = wilson_interval(5, 10)
+    assert (low, high) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+    assert all(math.isnan(v) for v in wilson_interval(0, 0))
+    assert cvar(np.arange(1.0, 21.0), 0.1) == 1.5  # worst 2 of 20
+    assert cvar([5.0, -1.0, 3.0], 0.1) == -1.0  # at least one value
+    # cumulative violations count each (task, repeat) sequence
+    rows = [
+        {"task": 0, "repeat": 0, "k": 0, "return": 0.0, "violated": True},
+        {"task": 0, "repeat": 0, "k": 1, "return": 0.0, "violated": True},
+        {"task": 1, "repeat": 0, "k": 0, "return": 0.0, "violated": False},
+        {"task": 1, "repeat": 0, "k": 1, "return": 0.0, "violated": True},
+    ]
+    assert [e["cum_violations"] for e in summarize(rows)] == [0.5, 1.5]
+
+
+def test_csv_and_json_schema(tmp_path: Any) -> None:
+    _, result = run_protocol()
+    result.to_csv(tmp_path / "m.csv")
+    lines = (tmp_path / "m.csv").read_text().splitlines()
+    assert lines[0] == "task,repeat,k,return,cost,length,violated,merged,b_min"
+    assert lines[1] == "0,0,0,0.0,3.0,3,1,0.0,3.0"
+    assert lines[2] == "0,0,1,3.0,0.0,3,0,1.0,0.0"
+    assert len(lines) == 1 + 8
+    with open(tmp_path / "m.csv") as file:
+        assert list(csv.DictReader(file).fieldnames or []) == [*ROW_COLUMNS, "merged", "b_min"]
+    result.to_json(tmp_path / "m.json")
+    data = json.loads((tmp_path / "m.json").read_text())
+    assert set(data) == {"config", "summary", "paper", "tasks", "rows", "traces"}
+    assert data["config"]["n_adapt"] == 3 and data["tasks"] == TASKS
+    assert list(data["paper"]) == ["0", "1", "3"]
+    assert data["traces"][0] == {"task": 0, "repeat": 0, "k": 0, "ego_speed": [1.0, 2.0, 3.0]}
+    back = MetaTestResult.from_json(tmp_path / "m.json")
+    assert back.rows == result.rows and back.summary == result.summary
+
+
+def test_vec_envs_give_the_same_rows() -> None:
+    _, reference = run_protocol()
+    _, dummy = run_protocol(DummyVecEnv([GuessEnv]))
+    _, wrapped = run_protocol(VecMonitor(DummyVecEnv([GuessEnv])))  # generic VecEnv path (auto-reset, terminal obs)
+    assert dummy.rows == reference.rows
+    assert wrapped.rows == reference.rows
+
+
+def test_clear_errors() -> None:
+    with pytest.raises(TypeError, match="adaptation API"):
+        meta_test(object(), GuessEnv(), TASKS)
+    with pytest.raises(ValueError, match="no test tasks"):
+        meta_test(ScriptedModel(), GuessEnv(), [])
+    with pytest.raises(ValueError, match="one env at a time"):
+        meta_test(ScriptedModel(), DummyVecEnv([GuessEnv, GuessEnv]), TASKS)
+
+
+def test_get_test_tasks() -> None:
+    model = ScriptedModel()
+    model.test_tasks = TASKS  # type: ignore[attr-defined]
+    assert get_test_tasks(model, GuessEnv(), n_tasks=1) == TASKS[:1]
+    sampled = get_test_tasks(model, GuessEnv(), n_tasks=5, seed=3, sample=True)
+    assert sampled == GuessEnv().sample_tasks(5, 3)
+
+
+def test_callback_logs_meta_test(tiny_kwargs: dict[str, Any], tmp_path: Any) -> None:
+    env = gym.make("SafePointGoalMeta-v0")
+    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **tiny_kwargs)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    callback = MetaTestCallback(env, eval_freq=60, n_tasks=2, n_adapt=2, best_model_save_path=str(tmp_path), log_path=str(tmp_path))
+    model.learn(130, callback=callback)
+    assert callback.n_evaluations == 2
+    assert callback.last_result is not None and len(callback.last_result.rows) == 2 * 3
+    with open(tmp_path / "progress.csv") as file:
+        columns = csv.DictReader(file).fieldnames or []
+    for key in ("meta_test/return_k0", "meta_test/return_k2", "meta_test/violation_rate_k0", "meta_test/return_adapted"):
+        assert key in columns
+    assert (tmp_path / "best_model.zip").is_file()
+    history = (tmp_path / "meta_test_history.csv").read_text().splitlines()
+    assert history[0].startswith("timesteps,k,n,return_mean") and len(history) == 1 + 2 * 3
