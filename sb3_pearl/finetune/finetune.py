@@ -231,10 +231,19 @@ class FineTune(DiscreteSAC):
                 if not self.test_tasks:
                     self.test_tasks = test
             if self.max_episode_steps is None:
-                spec = self.env.get_attr("spec", indices=[0])[0]
-                limit = getattr(spec, "max_episode_steps", None)
-                self.max_episode_steps = int(limit) if limit is not None else None
+                self.max_episode_steps = self._time_limit()
         self.reset_adaptation()
+
+    def _time_limit(self) -> int | None:
+        """The env's time limit: its registered ``max_episode_steps``, else that of a ``TimeLimit`` wrapper."""
+        assert self.env is not None
+        limit = getattr(self.env.get_attr("spec", indices=[0])[0], "max_episode_steps", None)
+        if limit is None:
+            try:
+                limit = self.env.get_attr("_max_episode_steps", indices=[0])[0]
+            except AttributeError:
+                return None
+        return int(limit) if limit is not None else None
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_adapted", "_adapt_buffer", "_adapt_episode_steps", "adapt_stats"]
