@@ -401,6 +401,23 @@ def test_longitudinal_mode_persists_and_speed_never_negative() -> None:
     assert env.vehicle.speed == 0.0
 
 
+def test_jam_behind_stopped_ego_never_overlaps() -> None:
+    """An ego braking to a stop on the main lane jams the traffic behind it; main-lane vehicles never overlap."""
+    env = make()
+    env.set_task({"density": 50.0, "speed": 25.0})
+    env.reset(seed=0)
+    env.place_vehicles(250.0, 25.0, 250.0 - 20.0 * np.arange(1, 8), [25.0] * 7, ego_lane=("b", "c", 0), mode=DECELERATE)
+    road = road_of(env)
+    for _ in range(50):
+        _, _, terminated, truncated, _ = env.step(DECELERATE)
+        assert np.diff(road.x).min() >= Vehicle.LENGTH - 1e-9
+        if terminated or truncated:
+            break
+    _, rear = road.neighbours_x(float(env.vehicle.position[0]))
+    assert not env.vehicle.crashed and env.vehicle.speed == 0.0
+    assert rear is not None and road.v[rear] < 0.5 and (road.v < 0.5).sum() >= 5  # a standing queue
+
+
 def test_render_rgb_array() -> None:
     env = gym.make(ENV_ID, render_mode="rgb_array")
     env.reset(seed=0)

@@ -534,7 +534,16 @@ class MergeRoad(Road):
         self.v = np.asarray(vs, dtype=np.float64)[order].copy()
         self.traffic = [self._make_vehicle(x, v) for x, v in zip(self.x.tolist(), self.v.tolist())]
         self.phantom_x = (float(self.x[-1]) if len(self.x) else 0.0) + self.spacing
+        self._keep_phantom_ahead_of_ego()
         self._refresh_vehicles()
+
+    def _keep_phantom_ahead_of_ego(self) -> None:
+        """Downstream traffic stays at least a spacing ahead of an ego that drives ahead of all traffic on the main lane."""
+        ego = self.ego
+        if ego is not None and ego.lane_index in MAIN_LANES:
+            ego_x = float(ego.position[0])
+            if not len(self.x) or self.x[-1] < ego_x:
+                self.phantom_x = max(self.phantom_x, ego_x + self.spacing)
 
     def _make_vehicle(self, x: float, v: float) -> HidasIDMVehicle:
         return HidasIDMVehicle(self, [x, 0.0], v, self.idm, self.hidas)
@@ -596,6 +605,7 @@ class MergeRoad(Road):
             self.x, self.v = self.x[:-1], self.v[:-1]
             self.traffic.pop()
             changed = True
+        self._keep_phantom_ahead_of_ego()
         while self.phantom_x < ego_x + front:
             self.x = np.append(self.x, self.phantom_x)
             self.v = np.append(self.v, self.task_speed)
@@ -669,8 +679,26 @@ class MergeRoad(Road):
         self.x = self.x + self.v * dt
         self.v = np.maximum(self.v + self.acc * dt, 0.0)
         self.phantom_x += self.task_speed * dt
+        n = len(self.x)
+        if n > 1 and float((self.x[1:] - self.x[:-1]).min()) < Vehicle.LENGTH:
+            self._no_overlap()
         if ego is not None:
             self._ego_collisions(ego, dt)
+
+    def _no_overlap(self) -> None:
+        """
+        Keep main-lane vehicles at least a car length apart (bumper contact), matching the leader's speed.
+
+        NPC-NPC collisions are not checked; explicit Euler with IDM's clipped braking can let a jam
+        (behind an ego stopped on the main lane) compress a few decimetres past contact. Applied from
+        the head backwards: ``x_i <= min_{j >= i} (x_j - (j - i) L)``.
+        """
+        offsets = np.arange(len(self.x)) * Vehicle.LENGTH
+        clamped = np.minimum.accumulate((self.x - offsets)[::-1])[::-1] + offsets
+        moved = clamped < self.x
+        moved[-1] = False
+        self.x = clamped
+        self.v[:-1] = np.where(moved[:-1], np.minimum(self.v[:-1], self.v[1:]), self.v[:-1])
 
     def _ego_collisions(self, ego: MergeEgoVehicle, dt: float) -> None:
         """The ego against nearby traffic and objects, behind highway-env's own spherical pre-check (``_is_colliding``)."""
