@@ -70,7 +70,14 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_train_writes_zoo_layout_and_meta_test(trained: Path) -> None:
     run_dir = trained / "pearlplus" / f"{ENV_ID}_1"
-    for name in (f"{ENV_ID}.zip", "best_model.zip", "meta_test.csv", "meta_test.json", "adaptation.png", "meta_test_history.csv"):
+    for name in (
+        f"{ENV_ID}.zip",
+        "best_model.zip",
+        "meta_test.csv",
+        "meta_test.json",
+        "adaptation.png",
+        "meta_test_history.csv",
+    ):
         assert (run_dir / name).is_file(), name
     for name in ("config.yml", "args.yml", "command.txt"):
         assert (run_dir / ENV_ID / name).is_file(), name
@@ -104,7 +111,9 @@ def test_enjoy_prints_prior_and_posterior(trained: Path, tmp_path: Path) -> None
     assert out.count(" prior ") == 2 and out.count(" posterior ") == 4
     assert "Summary over tasks" in out and "viol. rate" in out
     assert plot.is_file() and (tmp_path / "enjoy_violations.png").is_file()
-    best = run("enjoy.py", "--algo", "pearlplus", "--env", ENV_ID, "-f", str(trained), "--no-render", "--load-best", "--n-adapt", "1")
+    best = run(
+        "enjoy.py", "--algo", "pearlplus", "--env", ENV_ID, "-f", str(trained), "--no-render", "--load-best", "--n-adapt", "1"
+    )
     assert "best_model.zip" in best.stdout
 
 
@@ -148,7 +157,9 @@ def test_yaml_key_the_algorithm_does_not_take(tmp_path: Path) -> None:
         entry = yaml.safe_load(file)[ENV_ID]
     conf = tmp_path / "bad.yml"
     conf.write_text(yaml.safe_dump({ENV_ID: {**entry, "warp_factor": 9}}))
-    proc = run("train.py", "--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf), "-n", "10", check=False)
+    proc = run(
+        "train.py", "--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf), "-n", "10", check=False
+    )
     assert proc.returncode != 0
     assert "PEARL does not take the hyperparameter(s) ['warp_factor']" in proc.stderr
     assert "kl_weight" in proc.stderr  # the accepted ones are listed
@@ -164,7 +175,17 @@ def test_enjoy_missing_folder_and_other_env(trained: Path, tmp_path: Path) -> No
     other = tmp_path / "logs" / "pearlplus" / "PointGoalMeta-v0_1"
     shutil.copytree(trained / "pearlplus" / f"{ENV_ID}_1", other)
     (other / f"{ENV_ID}.zip").rename(other / "PointGoalMeta-v0.zip")
-    proc = run("enjoy.py", "--algo", "pearlplus", "--env", "PointGoalMeta-v0", "-f", str(tmp_path / "logs"), "--no-render", check=False)
+    proc = run(
+        "enjoy.py",
+        "--algo",
+        "pearlplus",
+        "--env",
+        "PointGoalMeta-v0",
+        "-f",
+        str(tmp_path / "logs"),
+        "--no-render",
+        check=False,
+    )
     assert proc.returncode != 0 and f"was trained on {ENV_ID}, not on PointGoalMeta-v0" in proc.stderr
 
 

@@ -226,7 +226,9 @@ def test_callback_logs_meta_test(tiny_kwargs: dict[str, Any], tmp_path: Any) -> 
     env = gym.make("SafePointGoalMeta-v0")
     model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **tiny_kwargs)
     model.set_logger(configure(str(tmp_path), ["csv"]))
-    callback = MetaTestCallback(env, eval_freq=60, n_tasks=2, n_adapt=2, best_model_save_path=str(tmp_path), log_path=str(tmp_path))
+    callback = MetaTestCallback(
+        env, eval_freq=60, n_tasks=2, n_adapt=2, best_model_save_path=str(tmp_path), log_path=str(tmp_path)
+    )
     model.learn(130, callback=callback)
     assert callback.n_evaluations == 2
     assert callback.last_result is not None and len(callback.last_result.rows) == 2 * 3
