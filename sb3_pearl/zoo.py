@@ -239,8 +239,8 @@ class MetaExperimentManager(ExperimentManager):
     """
 
     def __init__(self, args: Any, algo: str, env_id: str, log_folder: str, *posargs: Any, **kwargs: Any) -> None:
-        if kwargs.get("config") is None:
-            kwargs["config"] = default_config(algo)
+        if kwargs.get("config") is None and os.path.isfile(default_config(algo)):
+            kwargs["config"] = default_config(algo)  # else rl_zoo3's own file (its algorithms)
         super().__init__(args, algo, env_id, log_folder, *posargs, **kwargs)
         self.meta_test_kwargs: dict[str, Any] = dict(META_TEST_DEFAULTS)
         self.adaptive = has_adaptation_api(ALGOS[algo])
@@ -298,7 +298,7 @@ class MetaExperimentManager(ExperimentManager):
                 print("Creating meta-test environment")
             self.callbacks.append(
                 MetaTestCallback(
-                    self.create_envs(self.n_eval_envs, eval_env=True),
+                    self.create_envs(1, eval_env=True),  # the protocol runs one env
                     eval_freq=self.eval_freq,
                     n_tasks=self.n_eval_episodes,
                     n_adapt=self.meta_test_kwargs["n_adapt"],
