@@ -79,6 +79,7 @@ class ScriptedModel:
         self.n_adapt = 0
         self.action = UNSAFE_ACTION
         self.predict_phases: list[int] = []
+        self.deterministic_calls: list[bool] = []
 
     def reset_adaptation(self) -> None:
         self.calls.append("reset")
@@ -98,6 +99,7 @@ class ScriptedModel:
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None, deterministic: bool = False) -> Any:
         self.predict_phases.append(self.n_adapt)
+        self.deterministic_calls.append(deterministic)
         return np.int64(self.action), None
 
 
@@ -128,6 +130,15 @@ def test_rows_and_k_indexing() -> None:
     assert model.calls == per_episode * 4
     # predict at trajectory k saw exactly k adapt() calls: k = 0 really used the prior
     assert model.predict_phases == [k for _ in range(4) for k in range(4) for _ in range(HORIZON)]
+
+
+def test_stochastic_adaptation_models_act_stochastically() -> None:
+    model, result = run_protocol()
+    assert all(model.deterministic_calls) and result.config["deterministic"] is True
+    explorer = ScriptedModel()
+    explorer.stochastic_adaptation = True  # type: ignore[attr-defined]  # as MAML declares
+    result = meta_test(explorer, GuessEnv(), TASKS, n_adapt=1)
+    assert not any(explorer.deterministic_calls) and result.config["deterministic"] is False
 
 
 def test_observe_gets_every_transition() -> None:

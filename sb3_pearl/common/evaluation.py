@@ -415,7 +415,9 @@ def meta_test(
     :param tasks: the test tasks (e.g. ``model.test_tasks``, see :func:`get_test_tasks`)
     :param n_adapt: last trajectory index K: trajectories k = 0..K are rolled out per task
     :param n_repeats: repeats of the whole sequence per task (the context is cleared for each)
-    :param deterministic: deterministic actions
+    :param deterministic: deterministic actions (ignored for models with ``stochastic_adaptation = True``,
+        e.g. MAML, whose inner gradient step needs trajectories of the stochastic policy; the
+        setting actually used is recorded in the result's config)
     :param seed: seed of the env's first reset (None: not seeded)
     :param max_steps: cap on trajectory length (None: the env's own horizon)
     :param trace_keys: per-step info entries kept as traces
@@ -428,6 +430,9 @@ def meta_test(
         raise ValueError(f"meta_test: n_adapt must be >= 0 and n_repeats >= 1, got {n_adapt}, {n_repeats}")
     if len(tasks) == 0:
         raise ValueError("meta_test: no test tasks (the model has none saved; pass tasks or n_tasks)")
+    # An inner policy-gradient step (MAML) learns nothing from deterministic rollouts: algorithms that
+    # adapt on their own stochastic data say so with `stochastic_adaptation = True` and act stochastically.
+    deterministic = deterministic and not getattr(model, "stochastic_adaptation", False)
     runner = _SingleEnv(env)
     runner.seed(seed)
     rows: list[dict[str, Any]] = []

@@ -140,6 +140,9 @@ class MAML(BaseAlgorithm):
     :param _init_setup_model: build the networks at construction
     """
 
+    # The meta-test protocol rolls MAML out with the stochastic policy: its inner policy-gradient
+    # step needs on-policy samples (deterministic trajectories would give it no gradient).
+    stochastic_adaptation: ClassVar[bool] = True
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
     policy: MAMLPolicy
 
