@@ -11,13 +11,13 @@ import pytest
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 from stable_baselines3.sac.policies import SACPolicy
 
 import sb3_pearl  # noqa: F401  (registers the task families)
 from sb3_pearl.envs.task_protocol import Task, draw_train_test_tasks
 from sb3_pearl.finetune import DiscreteSAC, DiscreteSACPolicy, FineTune
-from tests.conftest import make_discrete_env
+from tests.conftest import make_discrete_env, make_point_env
 
 th.set_num_threads(1)
 
@@ -123,6 +123,17 @@ def test_meta_training_runs_one_training_task_per_episode() -> None:
             seen.append(episode[0]["goal"])
     assert len(seen) >= 20  # 2 envs x 200 steps / 20-step episodes
     assert len({tuple(goal) for goal in seen}) >= 4, "episodes do not mix the training tasks"
+
+
+def test_learn_with_subproc_vec_env() -> None:
+    env = SubprocVecEnv([make_point_env, make_point_env])
+    try:
+        model = tiny_model(env, learn=100)
+        assert model.num_timesteps >= 100
+        pending = env.env_method("get_task")  # every env holds a pending training task for its next episode
+        assert all(task in model.train_tasks for task in pending)
+    finally:
+        env.close()
 
 
 def test_tasks_are_drawn_with_the_seed_like_every_algorithm() -> None:
