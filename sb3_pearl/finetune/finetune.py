@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
@@ -104,6 +104,12 @@ class FineTune(DiscreteSAC):
     :param device: torch device
     :param _init_setup_model: build the networks at construction
     """
+
+    # Read by the meta-test protocol (sb3_pearl.common.evaluation): False keeps its deterministic
+    # trajectories, as for PEARL / PEARL+. Fine-tuning learns from them, but after one deterministic
+    # trajectory it is worse than k = 0 on the point robot, unlike after one stochastic trajectory
+    # (docs/finetune.md, measurements).
+    stochastic_adaptation: ClassVar[bool] = False
 
     def __init__(
         self,
