@@ -72,8 +72,10 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20_000)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--n-adapt", type=int, default=2)
+    parser.add_argument("--reward-scale", type=float, default=SETTINGS["reward_scale"])
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    SETTINGS["reward_scale"] = args.reward_scale
     th.set_num_threads(1)
     results: dict[str, Any] = {"settings": {**SETTINGS, "policy_kwargs": str(SETTINGS["policy_kwargs"])}, "steps": args.steps}
     for name, cls in (("PEARL", PEARL), ("PEARL+", PEARLPlus)):
