@@ -82,7 +82,9 @@ def main() -> None:
         per_seed = []
         for seed in args.seeds:
             start = time.time()
-            model = cls("MlpPolicy", "SafePointGoalMeta-v0", seed=seed, **SETTINGS)
+            # PEARL+'s extra Q-network has the size of the SAC Q-network, as the paper's "300-Node" setting
+            extra = {"prior_critic_arch": SETTINGS["policy_kwargs"]["net_arch"]} if cls is PEARLPlus else {}
+            model = cls("MlpPolicy", "SafePointGoalMeta-v0", seed=seed, **SETTINGS, **extra)
             model.learn(args.steps)
             out = meta_test(model, args.n_adapt)
             per_seed.append(out)
