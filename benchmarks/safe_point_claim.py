@@ -73,12 +73,15 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--n-adapt", type=int, default=2)
     parser.add_argument("--reward-scale", type=float, default=SETTINGS["reward_scale"])
+    parser.add_argument("--algos", nargs="+", default=["PEARL", "PEARL+"], choices=["PEARL", "PEARL+"])
+    parser.add_argument("--bf16", action="store_true", help="use_bf16=True (bfloat16 hidden layers in gradient steps)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     SETTINGS["reward_scale"] = args.reward_scale
+    SETTINGS["use_bf16"] = args.bf16
     th.set_num_threads(1)
     results: dict[str, Any] = {"settings": {**SETTINGS, "policy_kwargs": str(SETTINGS["policy_kwargs"])}, "steps": args.steps}
-    for name, cls in (("PEARL", PEARL), ("PEARL+", PEARLPlus)):
+    for name, cls in [(n, c) for n, c in (("PEARL", PEARL), ("PEARL+", PEARLPlus)) if n in args.algos]:
         per_seed = []
         for seed in args.seeds:
             start = time.time()
@@ -102,7 +105,7 @@ def main() -> None:
         }
     print("| algorithm | k | mean return | violation rate |")
     print("|---|---|---|---|")
-    for name in ("PEARL", "PEARL+"):
+    for name in args.algos:
         for k in range(args.n_adapt + 1):
             r = results[name]
             print(f"| {name} | {k} | {r['return_mean_per_k'][k]:.1f} | {r['violation_rate_per_k'][k]:.2f} |")

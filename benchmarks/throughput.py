@@ -49,7 +49,7 @@ def fill_meta_buffer(model: PEARLPlus) -> None:
         buf.size[:] = n
 
 
-def make_pearl(cls: type[PEARLPlus]) -> PEARLPlus:
+def make_pearl(cls: type[PEARLPlus], use_bf16: bool = False) -> PEARLPlus:
     kwargs = dict(
         n_train_tasks=TASKS,
         n_test_tasks=1,
@@ -62,6 +62,7 @@ def make_pearl(cls: type[PEARLPlus]) -> PEARLPlus:
         num_initial_steps=2000,
         policy_kwargs=dict(net_arch=NET),
         seed=0,
+        use_bf16=use_bf16,
     )
     if cls is PEARLPlus:
         kwargs["prior_critic_arch"] = NET
@@ -176,10 +177,14 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     args = parser.parse_args()
     sac, pearl, pearl_plus = make_sac(), make_pearl(PEARL), make_pearl(PEARLPlus)
+    pearl_plus_bf16 = make_pearl(PEARLPlus, use_bf16=True)
     bare, bare_plus = BareStep(prior=False), BareStep(prior=True)
     print(f"rows per step: {TASKS} tasks x {ROWS} = {TASKS * ROWS}; nets 3x300, encoder 3x200 on {CONTEXT} context rows/task")
-    print("| threads | SAC s/step | PEARL s/step | PEARL+ s/step | PEARL/SAC | PEARL+/SAC | PEARL/bare | PEARL+/bare |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| threads | SAC s/step | PEARL s/step | PEARL+ s/step | PEARL/SAC | PEARL+/SAC | PEARL/bare | PEARL+/bare "
+        "| PEARL+ bf16 s/step | PEARL+ bf16/SAC |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for threads in args.threads:
         th.set_num_threads(threads)
         t_sac = seconds_per_step(lambda: sac.train(gradient_steps=1, batch_size=TASKS * ROWS), args.steps)
@@ -187,9 +192,10 @@ def main() -> None:
         t_plus = seconds_per_step(lambda: pearl_plus.train(gradient_steps=1), args.steps)
         t_bare = seconds_per_step(bare.step, args.steps)
         t_bare_plus = seconds_per_step(bare_plus.step, args.steps)
+        t_bf16 = seconds_per_step(lambda: pearl_plus_bf16.train(gradient_steps=1), args.steps)
         print(
             f"| {threads} | {t_sac:.3f} | {t_pearl:.3f} | {t_plus:.3f} | {t_pearl / t_sac:.2f} | {t_plus / t_sac:.2f} "
-            f"| {t_pearl / t_bare:.2f} | {t_plus / t_bare_plus:.2f} |"
+            f"| {t_pearl / t_bare:.2f} | {t_plus / t_bare_plus:.2f} | {t_bf16:.3f} | {t_bf16 / t_sac:.2f} |"
         )
 
 

@@ -128,3 +128,23 @@ def test_z0_is_one_per_task_and_actor_loss_weights(tiny_kwargs: dict[str, Any]) 
     )
     assert model.prior_coef == 0.1
     assert th.allclose(model._total_loss(losses), expected)
+
+
+def test_bf16_hidden_layers_keep_float32_heads_and_master_weights(tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", gym.make("PointGoalMeta-v0"), seed=0, use_bf16=True, **tiny_kwargs)
+    model.learn(4 * tiny_kwargs["num_initial_steps"])
+    assert model._n_updates > 0
+    replay, context, z0 = model._sample_meta_batch()
+    with th.autocast("cpu", dtype=th.bfloat16):
+        hidden = model.critic.q_networks[0][0](th.zeros(4, model.critic.q_networks[0][0].in_features))
+        losses = model._compute_losses(replay, context, z0)
+        z_mean, z_var = model.encoder.posterior(context)
+        x = th.zeros(4, model.critic.q_networks[0][0].in_features)
+        q = model.critic(x)
+    assert hidden.dtype == th.bfloat16  # the hidden layers really run in bfloat16 ...
+    assert q.dtype == z_mean.dtype == z_var.dtype == th.float32  # ... the output layers in float32
+    for name in ("critic_loss", "kl_loss", "prior_critic_loss", "actor_loss", "prior_actor_loss"):
+        value = getattr(losses, name)
+        assert value.dtype == th.float32 and th.isfinite(value), name
+    assert all(p.dtype == th.float32 and th.isfinite(p).all() for p in model.policy.parameters())
+    assert _is_zero(losses.prior_critic_loss, model.encoder) and _is_zero(losses.actor_loss, model.encoder)

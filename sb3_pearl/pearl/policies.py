@@ -26,6 +26,18 @@ LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 PRIOR_CRITIC_MODES = ("separate", "shared", "none")
 
 
+def mlp_with_fp32_head(mlp: nn.Sequential, x: th.Tensor) -> th.Tensor:
+    """
+    Run an MLP whose hidden layers may run under autocast (``use_bf16``) while its output layer runs in
+    float32: Q values, log-stds and posterior parameters keep full precision for the losses.
+    """
+    *hidden, head = mlp
+    for layer in hidden:
+        x = layer(x)
+    with th.autocast(device_type=x.device.type, enabled=False):
+        return head(x.float())
+
+
 class ContextEncoder(nn.Module):
     """
     q(z | c): one Gaussian factor per context transition, combined by product of Gaussians.
@@ -43,7 +55,7 @@ class ContextEncoder(nn.Module):
 
     def forward(self, context: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """Per-transition factors: ``context`` (T, N, D) -> means and variances, each (T, N, L)."""
-        out = self.net(context)
+        out = mlp_with_fp32_head(self.net, context)
         mu, pre_var = out[..., : self.latent_dim], out[..., self.latent_dim :]
         return mu, F.softplus(pre_var)
 
@@ -73,7 +85,9 @@ class SquashedGaussianActor(nn.Module):
 
     def _params(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         h = self.latent_pi(x)
-        return self.mu(h), th.clamp(self.log_std(h), LOG_STD_MIN, LOG_STD_MAX)
+        with th.autocast(device_type=h.device.type, enabled=False):
+            h = h.float()
+            return self.mu(h), th.clamp(self.log_std(h), LOG_STD_MIN, LOG_STD_MAX)
 
     def action_log_prob(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """Reparameterised actions in [-1, 1] (N, A) and their log-probabilities (N,)."""
@@ -101,11 +115,11 @@ class CategoricalActor(nn.Module):
 
     def probs(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """Action probabilities and log-probabilities, each (N, n_actions)."""
-        log_probs = F.log_softmax(self.logits(x), dim=-1)
+        log_probs = F.log_softmax(mlp_with_fp32_head(self.logits, x), dim=-1)
         return log_probs.exp(), log_probs
 
     def forward(self, x: th.Tensor, deterministic: bool = False) -> th.Tensor:
-        logits = self.logits(x)
+        logits = mlp_with_fp32_head(self.logits, x)
         if deterministic:
             return logits.argmax(dim=-1)
         return th.distributions.Categorical(logits=logits).sample()
@@ -139,7 +153,7 @@ class LatentCritic(nn.Module):
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         """Q values of every network, shape ``(n_critics, N, output_dim)``."""
-        return th.stack([q(x) for q in self.q_networks])
+        return th.stack([mlp_with_fp32_head(q, x) for q in self.q_networks])
 
     def forward_frozen(self, x: th.Tensor) -> th.Tensor:
         """Like :meth:`forward` but with detached parameters: gradients reach ``x`` only (actor losses)."""
