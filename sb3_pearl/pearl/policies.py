@@ -26,11 +26,12 @@ LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 PRIOR_CRITIC_MODES = ("separate", "shared", "none")
 
 
-def mlp_with_fp32_head(mlp: nn.Sequential, x: th.Tensor) -> th.Tensor:
+def mlp_with_fp32_head(mlp: nn.Module, x: th.Tensor) -> th.Tensor:
     """
     Run an MLP whose hidden layers may run under autocast (``use_bf16``) while its output layer runs in
     float32: Q values, log-stds and posterior parameters keep full precision for the losses.
     """
+    assert isinstance(mlp, nn.Sequential)
     *hidden, head = mlp
     for layer in hidden:
         x = layer(x)
