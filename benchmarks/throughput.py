@@ -86,7 +86,7 @@ def make_sac() -> SAC:
 def mlp(inp: int, out: int, hidden: list[int]) -> nn.Sequential:
     layers: list[nn.Module] = []
     for h in hidden:
-        layers += [nn.Linear(inp, h), nn.ReLU()]
+        layers += [nn.Linear(inp, h), nn.ReLU(inplace=True)]  # in-place, as the project's networks
         inp = h
     return nn.Sequential(*layers, nn.Linear(inp, out))
 
