@@ -22,6 +22,7 @@ import numpy as np
 import torch as th
 
 from sb3_pearl import PEARL, PEARLPlus
+from sb3_pearl.common import evaluation
 
 # The reference point-robot settings (oyster configs/point-robot.json: fixed entropy 1,
 # reward_scale 100, kl 0.1), scaled down to run in minutes on one core.
@@ -45,25 +46,13 @@ SETTINGS: dict[str, Any] = dict(
 
 
 def meta_test(model: PEARLPlus, n_adapt: int) -> dict[str, np.ndarray]:
-    """Returns and violations, arrays of shape (n_test_tasks, n_adapt + 1)."""
-    env = gym.make("SafePointGoalMeta-v0")
-    returns = np.zeros((len(model.test_tasks), n_adapt + 1))
-    violated = np.zeros_like(returns)
-    for i, task in enumerate(model.test_tasks):
-        env.unwrapped.set_task(task)
-        model.reset_adaptation()
-        for k in range(n_adapt + 1):
-            if k > 0:
-                model.adapt()
-            obs, _ = env.reset(seed=i)
-            done = False
-            while not done:
-                action, _ = model.predict(obs, deterministic=True)
-                next_obs, reward, terminated, truncated, info = env.step(action)
-                model.observe(obs, action, float(reward), next_obs, terminated or truncated)
-                obs, done = next_obs, terminated or truncated
-                returns[i, k] += reward
-                violated[i, k] = max(violated[i, k], info["cost"])
+    """The project's meta-test protocol on the held-out tasks: returns and violations, (n_test_tasks, n_adapt + 1)."""
+    result = evaluation.meta_test(model, gym.make("SafePointGoalMeta-v0"), model.test_tasks, n_adapt=n_adapt, seed=0)
+    shape = (len(model.test_tasks), n_adapt + 1)
+    returns, violated = np.zeros(shape), np.zeros(shape)
+    for row in result.rows:
+        returns[row["task"], row["k"]] = row["return"]
+        violated[row["task"], row["k"]] = float(row["violated"])
     return {"return": returns, "violated": violated}
 
 

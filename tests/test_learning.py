@@ -8,6 +8,7 @@ import pytest
 import torch as th
 
 from sb3_pearl import PEARL
+from sb3_pearl.common.evaluation import meta_test
 
 # Reference point-robot settings (oyster configs/point-robot.json: fixed entropy 1, reward_scale 100,
 # kl 0.1), scaled down: 40/10 tasks, 64x64 networks, 16k env steps (about a minute on one core).
@@ -31,23 +32,9 @@ POINT_ROBOT = dict(
 
 
 def adapted_returns(model: PEARL, env: gym.Env, n_adapt: int = 2) -> np.ndarray:
-    """Mean return over the model's test tasks of trajectories k = 0..n_adapt (k = 0: prior z)."""
-    returns = np.zeros((len(model.test_tasks), n_adapt + 1))
-    for i, task in enumerate(model.test_tasks):
-        env.unwrapped.set_task(task)
-        model.reset_adaptation()
-        for k in range(n_adapt + 1):
-            if k > 0:
-                model.adapt()
-            obs, _ = env.reset()
-            done = False
-            while not done:
-                action, _ = model.predict(obs, deterministic=True)
-                next_obs, reward, terminated, truncated, _ = env.step(action)
-                model.observe(obs, action, float(reward), next_obs, terminated or truncated)
-                obs, done = next_obs, terminated or truncated
-                returns[i, k] += reward
-    return returns.mean(axis=0)
+    """Mean return over the model's test tasks of trajectories k = 0..n_adapt (k = 0: prior z), by the meta-test protocol."""
+    result = meta_test(model, env, model.test_tasks, n_adapt=n_adapt)
+    return np.array([row["return_mean"] for row in result.summary])
 
 
 def random_return(env: gym.Env, tasks: list[dict], seed: int = 0) -> float:
@@ -79,11 +66,11 @@ def test_pearl_beats_random_after_adaptation_on_point_robot() -> None:
 @pytest.mark.slow
 def test_pearl_adapts_on_safe_point_goal() -> None:
     """With the reference entropy setting (fixed 1, reward_scale 5) PEARL's posterior beats its prior."""
-    from benchmarks.safe_point_claim import SETTINGS, meta_test
+    from benchmarks.safe_point_claim import SETTINGS
 
     th.set_num_threads(1)
     model = PEARL("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **{**SETTINGS, "reward_scale": 5.0})
     model.learn(30_000)
-    returns = meta_test(model, n_adapt=2)["return"].mean(axis=0)
+    returns = adapted_returns(model, gym.make("SafePointGoalMeta-v0"))
     print(f"held-out mean return per k: {np.round(returns, 2).tolist()}")
     assert returns[1:].min() > returns[0] + 3.0  # measured: -36.4 -> -16.6, -15.6 (seed 0)
