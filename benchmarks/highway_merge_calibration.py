@@ -17,25 +17,16 @@ import gymnasium as gym
 import numpy as np
 
 import sb3_pearl  # noqa: F401  (registers the envs)
-from sb3_pearl.envs.highway_merge import CRUISE, LANE_LEFT, MERGE_LANE, MPH, HighwayMergeMetaEnv, IDMParams, MergeRoad
-
-
-def traffic_only(env: HighwayMergeMetaEnv, params: IDMParams | None, seed: int = 0) -> tuple[float, float]:
-    """Mean speed and spacing of the main-lane traffic without the ego over the last 30 s of 60 s."""
-    env.reset(seed=seed)
-    road = env.road
-    assert isinstance(road, MergeRoad)
-    if params is not None:
-        road.idm = params
-    road.ego = None
-    speeds, spacings = [], []
-    for frame in range(600):
-        road.act()
-        road.step(0.1)
-        if frame >= 300:
-            speeds.append(road.v.mean())
-            spacings.append(np.diff(road.x).mean())
-    return float(np.mean(speeds)), float(np.mean(spacings))
+from sb3_pearl.envs.highway_merge import (
+    CRUISE,
+    LANE_LEFT,
+    MERGE_LANE,
+    MPH,
+    HighwayMergeMetaEnv,
+    IDMParams,
+    MergeRoad,
+    measure_main_lane_traffic,
+)
 
 
 def episodes(env: HighwayMergeMetaEnv, n: int) -> tuple[float, float, float]:
@@ -73,9 +64,10 @@ def main() -> None:
             env.set_task({"density": density, "speed": speed})
             env.reset(seed=0)
             idm = env.task_idm
-            alone = traffic_only(env, None)
+            alone = measure_main_lane_traffic(env)
             ep_speed, ep_spacing, crash_rate = episodes(env, args.episodes)
-            default = traffic_only(env, IDMParams(desired_speed=idm.desired_speed, time_wanted=1.5, distance_wanted=10.0))
+            stock_idm = IDMParams(desired_speed=idm.desired_speed, time_wanted=1.5, distance_wanted=10.0)
+            default = measure_main_lane_traffic(env, stock_idm)
             print(
                 f"| {density:.0f} | {mph:.0f} ({speed:.2f}) | {1000 / density:.1f} | {idm.time_wanted:.3f} "
                 f"| {idm.desired_speed:.1f} | {alone[0]:.2f}, {alone[1]:.2f} "

@@ -32,6 +32,7 @@ from sb3_pearl.envs.highway_merge import (
     calibrate_idm,
     hidas_should_yield,
     idm_acceleration,
+    measure_main_lane_traffic,
     min_braking,
 )
 
@@ -253,19 +254,7 @@ def test_traffic_calibration_at_task_corners(density: float, speed: float) -> No
     env = make()
     env.set_task({"density": density, "speed": speed})
     for params in (None, IDMParams(desired_speed=1.3 * speed, time_wanted=1.5, distance_wanted=10.0)):
-        env.reset(seed=0)
-        road = road_of(env)
-        if params is not None:
-            road.idm = params
-        road.ego = None
-        speeds, spacings = [], []
-        for frame in range(600):
-            road.act()
-            road.step(0.1)
-            if frame >= 300:
-                speeds.append(road.v.mean())
-                spacings.append(np.diff(road.x).mean())
-        mean_speed, mean_spacing = float(np.mean(speeds)), float(np.mean(spacings))
+        mean_speed, mean_spacing = measure_main_lane_traffic(env, params)
         if params is None:
             assert mean_speed == pytest.approx(speed, rel=0.10)
             assert mean_spacing == pytest.approx(1000.0 / density, rel=0.10)

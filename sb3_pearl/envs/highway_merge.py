@@ -1153,6 +1153,36 @@ class HighwayMergeMetaEnv(MetaTaskEnv, AbstractEnv):
         return not self._is_terminated() and self._t >= self.horizon
 
 
+def measure_main_lane_traffic(
+    env: HighwayMergeMetaEnv, idm: IDMParams | None = None, seed: int = 0, seconds: float = 60.0, warmup: float = 30.0
+) -> tuple[float, float]:
+    """
+    Mean speed and spacing of the main-lane traffic alone (no ego), for calibration checks.
+
+    :param env: the env, with the task to measure already set
+    :param idm: IDM parameters to use instead of the task's calibrated ones (e.g. highway-env's defaults)
+    :param seed: reset seed
+    :param seconds: simulated time
+    :param warmup: seconds left out of the averages
+    :return: mean speed [m/s] and mean spacing (centre to centre) [m]
+    """
+    env.reset(seed=seed)
+    road = env.road
+    assert isinstance(road, MergeRoad)
+    if idm is not None:
+        road.idm = idm
+    road.ego = None
+    dt = 1.0 / env.config["simulation_frequency"]
+    speeds, spacings = [], []
+    for frame in range(round(seconds / dt)):
+        road.act()
+        road.step(dt)
+        if frame >= round(warmup / dt):
+            speeds.append(road.v.mean())
+            spacings.append(np.diff(road.x).mean())
+    return float(np.mean(speeds)), float(np.mean(spacings))
+
+
 _OBS_SCALE = np.array(
     [1 / OBS_LENGTH_SCALE, 1 / LANE_WIDTH, 1 / OBS_SPEED_SCALE, 1 / OBS_SPEED_SCALE]
     + [1.0, 1 / OBS_LENGTH_SCALE, 1 / LANE_WIDTH, 1 / OBS_SPEED_SCALE, 1 / OBS_SPEED_SCALE] * 4,
