@@ -21,6 +21,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 from sb3_pearl.common.evaluation import PAPER_KS, MetaTestResult  # noqa: E402
 
@@ -67,6 +68,15 @@ def _yerr(rate: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
     return np.nan_to_num(np.maximum(np.stack([rate - low, high - rate]), 0.0))
 
 
+def _save(fig: Figure, path: str | os.PathLike[str], title: str = "") -> None:
+    """Lay out, title (if any), write and close a figure."""
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def plot_adaptation(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str], title: str = "") -> None:
     """
     Adaptation curves: mean return (+- std) and violation rate (95% Wilson interval) against k, one line per run.
@@ -97,11 +107,7 @@ def plot_adaptation(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[
         ax.grid(alpha=0.3)
         ax.xaxis.get_major_locator().set_params(integer=True)  # type: ignore[call-arg]
     ax_ret.legend(fontsize="small")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path, title)
 
 
 def plot_violation_bars(
@@ -130,9 +136,7 @@ def plot_violation_bars(
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize="small")
     ax.set_title(title or "violation rate before (0) and after adaptation")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def has_b_min(runs: Mapping[str, MetaTestResult]) -> bool:
@@ -161,9 +165,7 @@ def plot_b_min(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str],
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
     ax.set_title(title or "minimum braking at the merge")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def has_traces(runs: Mapping[str, MetaTestResult], key: str = "ego_speed") -> bool:
@@ -202,11 +204,7 @@ def plot_speed_profiles(
             ax.set_xlabel("policy step")
             ax.grid(alpha=0.3)
         row_axes[0].set_ylabel(f"{key} [m/s]" if "speed" in key else key)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path, title)
 
 
 def plot_all(
