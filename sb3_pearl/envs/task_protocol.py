@@ -119,19 +119,3 @@ def draw_train_test_tasks(env: Any, n_train: int, n_test: int, seed: int | None)
     """
     tasks = env.env_method("sample_tasks", n_train + n_test, seed, indices=[0])[0]
     return list(tasks[:n_train]), list(tasks[n_train:])
-
-
-def check_task_env(env: Any) -> None:
-    """
-    Raise a clear error unless ``env`` (a gymnasium env, possibly wrapped) follows the task protocol.
-
-    :param env: the environment
-    """
-    base = env.unwrapped
-    missing = [name for name in TASK_METHODS if not callable(getattr(base, name, None))]
-    if missing:
-        raise ValueError(
-            f"{type(base).__name__} does not implement the task protocol: missing {missing}. "
-            "Meta-RL needs an env with sample_tasks(n, seed), set_task(task) and get_task() "
-            "(see sb3_pearl.envs.task_protocol.MetaTaskEnv), e.g. gym.make('PointGoalMeta-v0')."
-        )
