@@ -15,7 +15,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 from stable_baselines3.sac.policies import SACPolicy
 
 import sb3_pearl  # noqa: F401  (registers the task families)
-from sb3_pearl.envs.task_protocol import Task, draw_train_test_tasks
+from sb3_pearl.common.tasks import draw_train_test_tasks
+from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune import DiscreteSAC, DiscreteSACPolicy, FineTune
 from tests.conftest import make_discrete_env, make_point_env
 

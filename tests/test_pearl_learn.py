@@ -204,7 +204,7 @@ def test_clear_errors(tiny_kwargs: dict[str, Any]) -> None:
         PEARLPlus("MlpPolicy", "PointGoalMeta-v0", prior_coef=-0.1)
     with pytest.raises(ValueError, match="unknown prior_critic mode 'both'"):
         PEARLPlus("MlpPolicy", "PointGoalMeta-v0", prior_critic="both")
-    with pytest.raises(ValueError, match="PEARL has no 'prior_coef'"):
+    with pytest.raises(TypeError, match="prior_coef"):
         PEARL("MlpPolicy", "PointGoalMeta-v0", prior_coef=0.1)
     with pytest.raises(ValueError, match="VecNormalize"):
         PEARLPlus("MlpPolicy", VecNormalize(make_vec_env("PointGoalMeta-v0")))
@@ -248,3 +248,26 @@ def test_saved_replay_buffer_holds_only_used_rows(tmp_path: Path, tiny_kwargs: d
     model.load_replay_buffer(tmp_path / "buffer.pkl")
     assert model.replay_buffer.rl.observations.shape == (4, 1_000_000, 2)
     model.learn(100, reset_num_timesteps=False)
+
+
+def test_pearlplus_without_prior_term_is_pearl(tiny_kwargs: dict[str, Any]) -> None:
+    """prior_coef=0 is the one switch: no prior critic is built or trained, and the numbers are PEARL's."""
+    kwargs = {k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"}
+    plus = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, prior_coef=0.0, **kwargs)
+    assert isinstance(plus, PEARL) and not plus.uses_prior_term
+    assert plus.prior_critic is None and plus.policy.prior_critic_mode == "none"
+    plus.learn(300)  # each model is built and trained in turn: construction reseeds the global RNGs
+    pearl = PEARL("MlpPolicy", "PointGoalMeta-v0", seed=0, **kwargs)
+    pearl.learn(300)
+    plus_state, pearl_state = plus.policy.state_dict(), pearl.policy.state_dict()
+    assert plus_state.keys() == pearl_state.keys()
+    assert all(th.equal(plus_state[k], pearl_state[k]) for k in plus_state)
+
+
+def test_train_honours_batch_size(tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **tiny_kwargs)
+    model.learn(4 * tiny_kwargs["num_initial_steps"])
+    replay, _, _ = model._sample_meta_batch(3)
+    assert replay.rewards.shape == (model.meta_batch, 3, 1)
+    model.train(gradient_steps=2, batch_size=3)  # runs with 3 rows per task
+    assert model._n_updates > 0

@@ -10,7 +10,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, TaskFamily, check_task_vec_env
+from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, TaskFamily
 
 # id -> (entry point, registration kwargs)
 FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
@@ -34,4 +34,4 @@ def register_envs() -> None:
             gym.register(id=env_id, entry_point=entry_point, **kwargs)
 
 
-__all__ = ["FAMILIES", "MetaTaskEnv", "Task", "TaskFamily", "check_task_vec_env", "register_envs"]
+__all__ = ["FAMILIES", "MetaTaskEnv", "Task", "TaskFamily", "register_envs"]

@@ -1,4 +1,4 @@
-"""The task protocol every task family implements (``../DESIGN.md``).
+"""The env side of the task protocol every task family implements (``docs/design.md``).
 
 A task family is a Gymnasium env whose *task* (goal, target velocity, traffic) is a
 JSON-serialisable ``dict``:
@@ -16,7 +16,7 @@ JSON-serialisable ``dict``:
 from __future__ import annotations
 
 import copy
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -44,6 +44,11 @@ class MetaTaskEnv:
     :meth:`_apply_pending_task` at the start of ``reset()``; they implement
     :meth:`_sample_task`.
     """
+
+    # Scalar info entries the meta-test records per trajectory (last value seen), e.g. the merge
+    # family's ``b_min``; and per-step info entries kept as traces (e.g. ``ego_speed``).
+    trajectory_info_keys: ClassVar[tuple[str, ...]] = ()
+    step_trace_keys: ClassVar[tuple[str, ...]] = ()
 
     _task: Task
     _pending_task: Task | None
@@ -88,34 +93,3 @@ class MetaTaskEnv:
         if self._pending_task is not None:
             self._task = self._pending_task
             self._pending_task = None
-
-
-def check_task_vec_env(env: Any, algorithm: str) -> None:
-    """
-    Raise a clear error unless every env of a VecEnv follows the task protocol.
-
-    :param env: the VecEnv
-    :param algorithm: name of the algorithm, for the message
-    """
-    missing = [name for name in TASK_METHODS if not env.has_attr(name)]
-    if missing:
-        raise ValueError(
-            f"{algorithm} needs a task-family env with sample_tasks(n, seed), set_task(task) and get_task(); "
-            f"missing {missing}. See sb3_pearl.envs.task_protocol.MetaTaskEnv, e.g. gym.make('SafePointGoalMeta-v0')."
-        )
-
-
-def draw_train_test_tasks(env: Any, n_train: int, n_test: int, seed: int | None) -> tuple[list[Task], list[Task]]:
-    """
-    Draw the training and held-out test tasks of a model in one ``sample_tasks`` call.
-
-    One call split in two keeps the lists of every algorithm identical for the same seed.
-
-    :param env: a VecEnv of a task family
-    :param n_train: number of training tasks
-    :param n_test: number of test tasks
-    :param seed: the model seed
-    :return: training tasks, test tasks
-    """
-    tasks = env.env_method("sample_tasks", n_train + n_test, seed, indices=[0])[0]
-    return list(tasks[:n_train]), list(tasks[n_train:])

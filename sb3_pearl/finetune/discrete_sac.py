@@ -27,6 +27,7 @@ from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
+from sb3_pearl.common.networks import CategoricalActor, LatentCritic
 from sb3_pearl.common.soft_actor_critic import (
     critic_regression_loss,
     entropy_log_prob,
@@ -35,7 +36,6 @@ from sb3_pearl.common.soft_actor_critic import (
     q_of_policy,
     soft_value,
 )
-from sb3_pearl.pearl.policies import CategoricalActor, LatentCritic
 
 SelfDiscreteSAC = TypeVar("SelfDiscreteSAC", bound="DiscreteSAC")
 

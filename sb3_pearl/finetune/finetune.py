@@ -26,7 +26,8 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import ConstantSchedule, get_parameters_by_name
 from stable_baselines3.sac.policies import SACPolicy
 
-from sb3_pearl.envs.task_protocol import Task, check_task_vec_env, draw_train_test_tasks
+from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
+from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
 
 SelfFineTune = TypeVar("SelfFineTune", bound="FineTune")
@@ -218,38 +219,18 @@ class FineTune(DiscreteSAC):
     # Set-up
     # ------------------------------------------------------------------------------------------
     def _check_env(self) -> None:
-        """Clear errors for envs Fine-Tune cannot use."""
-        if not isinstance(self.observation_space, spaces.Box):
-            raise ValueError(f"FineTune needs a Box observation space, got {self.observation_space}")
-        if self._vec_normalize_env is not None:
-            raise ValueError(
-                "VecNormalize is not supported: the adaptation API passes raw observations and rewards, "
-                "as for every algorithm of the project"
-            )
-        check_task_vec_env(self.env, "FineTune")
+        """Clear errors for envs Fine-Tune cannot use (its action spaces are checked by :class:`DiscreteSAC`)."""
+        check_meta_env("FineTune", self.env, self.observation_space, None, self._vec_normalize_env)
 
     def _setup_model(self) -> None:
         super()._setup_model()
         if self.env is not None:
-            if not self.train_tasks:
-                train, test = draw_train_test_tasks(self.env, self.n_train_tasks, self.n_test_tasks, self.seed)
-                self.train_tasks = train
-                if not self.test_tasks:
-                    self.test_tasks = test
+            self.train_tasks, self.test_tasks = resolve_train_test_tasks(
+                self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
+            )
             if self.max_episode_steps is None:
-                self.max_episode_steps = self._time_limit()
+                self.max_episode_steps = env_time_limit(self.env)
         self.reset_adaptation()
-
-    def _time_limit(self) -> int | None:
-        """The env's time limit: its registered ``max_episode_steps``, else that of a ``TimeLimit`` wrapper."""
-        assert self.env is not None
-        limit = getattr(self.env.get_attr("spec", indices=[0])[0], "max_episode_steps", None)
-        if limit is None:
-            try:
-                limit = self.env.get_attr("_max_episode_steps", indices=[0])[0]
-            except AttributeError:
-                return None
-        return int(limit) if limit is not None else None
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_adapted", "_adapt_buffer", "_adapt_episode_steps", "adapt_stats"]

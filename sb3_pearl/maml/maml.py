@@ -25,7 +25,6 @@ from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
@@ -33,7 +32,8 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import safe_mean
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from sb3_pearl.envs.task_protocol import Task, check_task_vec_env, draw_train_test_tasks
+from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
+from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.policies import MAMLPolicy, MlpPolicy, Params
 
 SelfMAML = TypeVar("SelfMAML", bound="MAML")
@@ -233,15 +233,7 @@ class MAML(BaseAlgorithm):
     # set-up
     # ------------------------------------------------------------------------------------------
     def _check_env(self, env: Any) -> None:
-        if not isinstance(self.action_space, (spaces.Box, spaces.Discrete)):
-            raise ValueError(
-                f"MAML supports Box (Gaussian policy) and Discrete (categorical policy) action spaces, got {self.action_space}"
-            )
-        if not isinstance(self.observation_space, spaces.Box):
-            raise ValueError(f"MAML supports Box observation spaces only, got {self.observation_space}")
-        if self._vec_normalize_env is not None:
-            raise ValueError("VecNormalize is not supported: per-env task switches reset envs below the VecEnv wrappers")
-        check_task_vec_env(env, "MAML")
+        check_meta_env("MAML", env, self.observation_space, self.action_space, self._vec_normalize_env)
 
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
@@ -254,16 +246,13 @@ class MAML(BaseAlgorithm):
             self._task_rng = np.random.default_rng(self.seed)
         if self.env is not None:
             if self.max_episode_steps is None:
-                spec = self.env.get_attr("spec", indices=[0])[0]
-                limit = getattr(spec, "max_episode_steps", None)
+                limit = env_time_limit(self.env)
                 if limit is None:
                     raise ValueError("The env has no registered time limit: pass max_episode_steps to MAML")
-                self.max_episode_steps = int(limit)
-            if not self.train_tasks:
-                train, test = draw_train_test_tasks(self.env, self.n_train_tasks, self.n_test_tasks, self.seed)
-                self.train_tasks = train
-                if not self.test_tasks:
-                    self.test_tasks = test
+                self.max_episode_steps = limit
+            self.train_tasks, self.test_tasks = resolve_train_test_tasks(
+                self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
+            )
         self.reset_adaptation()
 
     def _excluded_save_params(self) -> list[str]:

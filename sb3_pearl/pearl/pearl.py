@@ -9,20 +9,17 @@ from __future__ import annotations
 import io
 import math
 import pathlib
-from collections import deque
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
-from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.context import kl_to_standard_normal
@@ -34,45 +31,42 @@ from sb3_pearl.common.soft_actor_critic import (
     q_of_policy,
     soft_value,
 )
+from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
-from sb3_pearl.envs.task_protocol import Task, check_task_vec_env, draw_train_test_tasks
+from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.pearl.collection import collect_iteration, plan_iteration
 from sb3_pearl.pearl.policies import PEARLPolicy
 
-SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
+SelfPEARL = TypeVar("SelfPEARL", bound="PEARL")
 
 
-class Segment(NamedTuple):
-    """A stretch of data collection on one training task (one line of Algorithm 1's inner loop)."""
+class PosteriorSample(NamedTuple):
+    """q(z | c) for T tasks and one z per task."""
 
-    task: int  # index into train_tasks
-    n_steps: int
-    z_source: str  # "prior": z ~ N(0, I); "posterior": z ~ q(z | context buffer of the task)
-    add_to_context: bool  # also store the data in the task's context buffer
-    clear_context: bool  # clear the task's context buffer before collecting
+    mean: th.Tensor  # (T, latent_dim)
+    var: th.Tensor  # (T, latent_dim)
+    z: th.Tensor  # (T, latent_dim): a reparameterised sample (carries encoder gradients), or the mean
 
 
-class PEARLPlus(OffPolicyAlgorithm):
+class PEARL(OffPolicyAlgorithm):
     """
-    PEARL+ : PEARL with a prior-regularisation term (Algorithm 1 of the paper).
+    PEARL (Rakelly et al. 2019): off-policy meta-RL with probabilistic context variables.
 
-    The actor minimises ``L_actor(b, z.detach()) + prior_coef * L_actor(b, z0)`` with
-    ``z ~ q(z | c)`` and ``z0 ~ N(0, I)`` (one z0 per task, held across the task's rows). The
-    prior term is scored by an extra prior critic Q~(s, a, z0) with its own soft Bellman loss
-    (``prior_critic="separate"``) or, for the ablation PEARL+ (w/o), by the critic Q(s, a, z0)
-    (``prior_critic="shared"``). The encoder is trained by the critic loss and the KL only.
+    A context encoder infers q(z | c) from a task's transitions (product of Gaussians with a KL
+    bottleneck to N(0, I)); a soft actor-critic conditioned on z acts and learns. The encoder is
+    trained by the critic loss and the KL only. :class:`PEARLPlus` extends it with the paper's
+    prior-regularisation term; ``train()`` follows the paper's Algorithm 1, whose prior lines run only
+    when :attr:`uses_prior_term` (``prior_coef > 0``): for PEARL they are skipped.
 
-    All four losses touch disjoint parameter sets, so one backward pass serves every optimizer;
-    the actor terms see the critics through frozen parameters (gradients reach the actor only)
-    and, as in the reference implementation, the critics as they were before this step's update.
+    All losses touch disjoint parameter sets, so one backward pass serves every optimizer; the actor
+    terms see the critics through frozen parameters (gradients reach the actor only) and, unlike the
+    reference implementation and SB3's SAC (which compute the actor loss after the critic step), the
+    critics as they were before this step's update (docs/pearl.md states the effect).
 
-    Data collection (``learn``): iteration 0 collects ``num_initial_steps`` per training task with
-    z from the prior; every later iteration picks ``num_tasks_sample`` training tasks and, for
-    each, clears its context buffer and collects ``num_steps_prior`` steps with z from the prior,
-    ``num_steps_posterior`` steps with z from the posterior (both also stored as context) and
-    ``num_extra_rl_steps_posterior`` posterior steps for the RL buffer only; then
-    ``num_train_steps_per_itr`` gradient steps follow. z is drawn once per trajectory. If the
-    ``learn`` budget ends inside an iteration, the gradient steps are scaled by the share of the
-    iteration's planned steps that was collected.
+    Data collection (``learn``) follows the reference schedule (:mod:`sb3_pearl.pearl.collection`):
+    prior-z and posterior-z trajectories per visited task, then ``num_train_steps_per_itr`` gradient
+    steps. If the ``learn`` budget ends inside an iteration, the gradient steps are scaled by the
+    share of the iteration's planned steps that was collected.
 
     :param policy: ``"MlpPolicy"`` or a :class:`PEARLPolicy` subclass
     :param env: an env id or env following the task protocol (``sample_tasks``, ``set_task``,
@@ -82,10 +76,6 @@ class PEARLPlus(OffPolicyAlgorithm):
     :param batch_size: RL transitions per task in a gradient step (reference: 256)
     :param tau: Polyak coefficient of the target critics
     :param gamma: discount factor
-    :param prior_coef: weight ``alpha`` of the prior term (paper default 0.1); 0 gives PEARL's actor
-    :param prior_critic: ``"separate"`` (PEARL+) or ``"shared"`` (ablation PEARL+ (w/o))
-    :param prior_critic_arch: hidden sizes of the prior critic (paper: [300, 300, 300]; ablation [100, 100, 100])
-    :param prior_n_critics: Q networks in the prior critic (the paper: one new Q-network; 2 adds a twin minimum)
     :param latent_dim: size of z
     :param kl_weight: weight ``beta`` of KL(q(z|c) || N(0, I)), summed over the meta-batch tasks
     :param use_next_obs_in_context: context transitions are (s, a, r, s') instead of (s, a, r)
@@ -109,7 +99,7 @@ class PEARLPlus(OffPolicyAlgorithm):
     :param num_train_steps_per_itr: gradient steps per iteration
     :param use_bf16: run the hidden layers of every network in bfloat16 (``torch.autocast``) during
         gradient steps; weights, optimizers, output layers and losses stay float32. 2.6x faster
-        PEARL+ steps on a CPU with AVX512-BF16; see docs/pearl.md for the learning comparison
+        PEARL+ steps on a CPU with AVX512-BF16 (slower on CPUs without it); see docs/pearl.md
     :param policy_kwargs: extra policy arguments (``net_arch``, ``activation_fn``, ``n_critics``, ...)
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder
@@ -122,6 +112,9 @@ class PEARLPlus(OffPolicyAlgorithm):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": PEARLPolicy}
     policy: PEARLPolicy
     replay_buffer: MetaReplayBuffer  # type: ignore[assignment]
+    # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before set-up).
+    prior_coef: float = 0.0
+    prior_critic_mode: str = "none"
 
     def __init__(
         self,
@@ -132,10 +125,6 @@ class PEARLPlus(OffPolicyAlgorithm):
         batch_size: int = 256,
         tau: float = 0.005,
         gamma: float = 0.99,
-        prior_coef: float = 0.1,
-        prior_critic: str = "separate",
-        prior_critic_arch: list[int] | None = None,
-        prior_n_critics: int = 1,
         latent_dim: int = 5,
         kl_weight: float = 0.1,
         use_next_obs_in_context: bool = False,
@@ -164,10 +153,6 @@ class PEARLPlus(OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        if prior_coef < 0:
-            raise ValueError(f"prior_coef must be >= 0 (the paper's alpha > 0; 0 gives PEARL), got {prior_coef}")
-        if prior_critic not in self._prior_critic_modes():
-            raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {self._prior_critic_modes()}")
         for name, value in (
             ("n_train_tasks", n_train_tasks),
             ("meta_batch", meta_batch),
@@ -202,8 +187,6 @@ class PEARLPlus(OffPolicyAlgorithm):
             sde_support=False,
             supported_action_spaces=None,  # checked in _setup_model with a ValueError
         )
-        self.prior_coef = prior_coef
-        self.prior_critic_mode = prior_critic
         self.kl_weight = kl_weight
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
@@ -227,20 +210,19 @@ class PEARLPlus(OffPolicyAlgorithm):
         self.policy_kwargs.update(
             latent_dim=latent_dim,
             use_next_obs_in_context=use_next_obs_in_context,
-            prior_critic=prior_critic,
-            prior_n_critics=prior_n_critics,
+            # The one switch: a prior critic is built only when the prior term uses it.
+            prior_critic=self.prior_critic_mode if self.uses_prior_term else "none",
         )
         if encoder_arch is not None:
             self.policy_kwargs["encoder_arch"] = encoder_arch
-        if prior_critic_arch is not None:
-            self.policy_kwargs["prior_critic_arch"] = prior_critic_arch
         self._adapt_context: list[tuple[np.ndarray, np.ndarray, float, np.ndarray]] = []
         if _init_setup_model:
             self._setup_model()
 
-    @staticmethod
-    def _prior_critic_modes() -> tuple[str, ...]:
-        return ("separate", "shared")
+    @property
+    def uses_prior_term(self) -> bool:
+        """Whether the actor is also trained on prior latents z0 (PEARL+ with ``prior_coef > 0``)."""
+        return self.prior_coef > 0
 
     # ------------------------------------------------------------------------------------------
     # Set-up
@@ -249,9 +231,17 @@ class PEARLPlus(OffPolicyAlgorithm):
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         if self.env is not None:
-            self._check_env(self.env)
-            if not self.train_tasks:
-                self._draw_tasks(self.env)
+            check_meta_env(
+                type(self).__name__,
+                self.env,
+                self.observation_space,
+                self.action_space,
+                self._vec_normalize_env,
+                flat_observations=True,
+            )
+            self.train_tasks, self.test_tasks = resolve_train_test_tasks(
+                self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
+            )
         context_size = max(self.num_initial_steps, self.num_steps_prior + self.num_steps_posterior, 1)
         self.replay_buffer = MetaReplayBuffer(
             len(self.train_tasks) or self.n_train_tasks,
@@ -276,24 +266,6 @@ class PEARLPlus(OffPolicyAlgorithm):
         self.critic_target = self.policy.critic_target
         self.prior_critic = self.policy.prior_critic
         self.prior_critic_target = self.policy.prior_critic_target
-
-    def _check_env(self, env: VecEnv) -> None:
-        """Clear errors for envs the algorithm cannot use."""
-        if not isinstance(self.action_space, (spaces.Box, spaces.Discrete)):
-            raise ValueError(
-                f"{type(self).__name__} supports Box and Discrete action spaces, got {type(self.action_space).__name__}"
-            )
-        if not isinstance(self.observation_space, spaces.Box) or len(self.observation_space.shape) != 1:
-            raise ValueError(f"{type(self).__name__} needs a flat Box observation space, got {self.observation_space}")
-        check_task_vec_env(env, type(self).__name__)
-        if self._vec_normalize_env is not None:
-            raise ValueError("VecNormalize is not supported: per-env task switches reset envs below the VecEnv wrappers")
-
-    def _draw_tasks(self, env: VecEnv) -> None:
-        train, test = draw_train_test_tasks(env, self.n_train_tasks, self.n_test_tasks, self.seed)
-        self.train_tasks = train
-        if not self.test_tasks:
-            self.test_tasks = test
 
     def _setup_entropy(self) -> None:
         if self.target_entropy == "auto":
@@ -345,24 +317,23 @@ class PEARLPlus(OffPolicyAlgorithm):
         ent_coef = self._current_ent_coef()
 
         # Task inference: q(z | c) per task, one z per task held across its rows.
-        z_mean, z_var = self.encoder.posterior(context)  # (T, L) each
-        z = z_mean + z_var.sqrt() * th.randn_like(z_mean)  # reparameterised sample, (T, L)
-        kl_loss = kl_to_standard_normal(z_mean, z_var).sum()  # summed over tasks, as the reference
-        z_rows = z.repeat_interleave(batch, dim=0)  # (T*B, L), carries encoder gradients
+        posterior = self.sample_posterior(context)  # mean, var, z: (T, L) each; z carries encoder gradients
+        kl_loss = kl_to_standard_normal(posterior.mean, posterior.var).sum()  # summed over tasks, as the reference
+        z_rows = posterior.z.repeat_interleave(batch, dim=0)  # (T*B, L)
         z0_rows = z0.repeat_interleave(batch, dim=0)  # (T*B, L)
         x_post = th.cat([obs, z_rows.detach()], dim=-1)  # actor input with the detached posterior z
         x_prior = th.cat([obs, z0_rows], dim=-1)
-        use_prior_actor = self.prior_coef > 0
+        use_prior = self.uses_prior_term
 
         # Actor on the posterior rows and, for PEARL+, the prior rows: one forward.
-        pe_all = evaluate_policy(self.actor, th.cat([x_post, x_prior]) if use_prior_actor else x_post)
+        pe_all = evaluate_policy(self.actor, th.cat([x_post, x_prior]) if use_prior else x_post)
         pe_post, pe_prior = pe_all.split(rows)
 
         # Soft Bellman targets with z detached (posterior) and z0 (prior critic): one actor forward.
         with th.no_grad():
             x_next = th.cat([next_obs, z_rows.detach()], dim=-1)
             x0_next = th.cat([next_obs, z0_rows], dim=-1)
-            next_pe_all = evaluate_policy(self.actor, th.cat([x_next, x0_next]) if self.prior_critic else x_next)
+            next_pe_all = evaluate_policy(self.actor, th.cat([x_next, x0_next]) if self.prior_critic is not None else x_next)
             next_pe, next_pe0 = next_pe_all.split(rows)
             v_next = soft_value(q_of_policy(self.critic_target, x_next, next_pe), next_pe, ent_coef)
             target = rewards + not_done * self.gamma * v_next  # (T*B, 1)
@@ -380,10 +351,10 @@ class PEARLPlus(OffPolicyAlgorithm):
                 target0 = rewards + not_done * self.gamma * v0_next
             prior_critic_loss = critic_regression_loss(q_of_actions(self.prior_critic, x_prior, actions, discrete), target0)
 
-        # Actor: L_actor(b, z.detach()) and L_actor(b, z0), critics frozen.
+        # Actor: L_actor(b, z.detach()) and, for PEARL+, L_actor(b, z0); critics frozen.
         actor_loss = -soft_value(q_of_policy(self.critic.forward_frozen, x_post, pe_post), pe_post, ent_coef).mean()
         prior_actor_loss = th.zeros((), device=self.device)
-        if use_prior_actor:
+        if use_prior:
             prior_q = self.prior_critic if self.prior_critic is not None else self.critic  # "shared": Q(s, a, z0)
             prior_actor_loss = -soft_value(q_of_policy(prior_q.forward_frozen, x_prior, pe_prior), pe_prior, ent_coef).mean()
 
@@ -400,8 +371,8 @@ class PEARLPlus(OffPolicyAlgorithm):
             prior_actor_loss=prior_actor_loss,
             ent_coef_loss=ent_coef_loss,
             ent_coef=ent_coef,
-            z_mean=z_mean.detach(),
-            z_var=z_var.detach(),
+            z_mean=posterior.mean.detach(),
+            z_var=posterior.var.detach(),
         )
 
     def _total_loss(self, losses: PEARLLosses) -> th.Tensor:
@@ -414,20 +385,41 @@ class PEARLPlus(OffPolicyAlgorithm):
             + losses.ent_coef_loss
         )
 
-    def _sample_meta_batch(self) -> tuple[MetaReplaySamples, th.Tensor, th.Tensor]:
-        """RL batch, context and z0 for ``meta_batch`` training tasks that hold data."""
+    def sample_posterior(self, context: th.Tensor, sample: bool = True) -> PosteriorSample:
+        """
+        Task inference, the one place where a context becomes a posterior and a z (losses, collection, adaptation).
+
+        :param context: context transitions (T, N, context_dim)
+        :param sample: draw z from q(z | c) with the reparameterisation trick, or take its mean
+        :return: posterior mean and variance and z, each (T, latent_dim)
+        """
+        mean, var = self.encoder.posterior(context)
+        z = mean + var.sqrt() * th.randn_like(mean) if sample else mean
+        return PosteriorSample(mean, var, z)
+
+    def _sample_context(self, tasks: np.ndarray) -> th.Tensor:
+        """``embedding_batch_size`` context transitions of each task, (len(tasks), N, context_dim)."""
+        ctx = self.replay_buffer.context.sample(tasks, self.embedding_batch_size, self.device)
+        return self.policy.make_context(ctx.observations, ctx.actions, ctx.rewards, ctx.next_observations)
+
+    def _sample_meta_batch(self, batch_size: int | None = None) -> tuple[MetaReplaySamples, th.Tensor, th.Tensor]:
+        """RL batch (``batch_size`` rows per task, default ``self.batch_size``), context and z0 for ``meta_batch`` tasks."""
         candidates = self.replay_buffer.tasks_with_data()
         if len(candidates) == 0:
             raise RuntimeError("no training task holds data yet: collect before training")
         tasks = np.random.choice(candidates, size=self.meta_batch, replace=len(candidates) < self.meta_batch)
-        replay = self.replay_buffer.rl.sample(tasks, self.batch_size, self.device)
-        ctx = self.replay_buffer.context.sample(tasks, self.embedding_batch_size, self.device)
-        context = self.policy.make_context(ctx.observations, ctx.actions, ctx.rewards, ctx.next_observations)
+        replay = self.replay_buffer.rl.sample(tasks, batch_size or self.batch_size, self.device)
+        context = self._sample_context(tasks)
         z0 = th.randn(len(tasks), self.latent_dim, device=self.device)  # one prior z per task
         return replay, context, z0
 
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
-        """``gradient_steps`` steps of Algorithm 1's inner loop, each over ``meta_batch`` tasks."""
+        """
+        ``gradient_steps`` steps of Algorithm 1's inner loop, each over ``meta_batch`` tasks.
+
+        :param gradient_steps: number of gradient steps
+        :param batch_size: RL transitions per task in each step (``learn`` passes ``self.batch_size``)
+        """
         self.policy.set_training_mode(True)
         optimizers = self.policy.optimizers()
         if self.ent_coef_optimizer is not None:
@@ -435,7 +427,7 @@ class PEARLPlus(OffPolicyAlgorithm):
         self._update_learning_rate(optimizers)
         logs: dict[str, list[float]] = {}
         for _ in range(gradient_steps):
-            replay, context, z0 = self._sample_meta_batch()
+            replay, context, z0 = self._sample_meta_batch(batch_size)
             with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self.use_bf16):
                 losses = self._compute_losses(replay, context, z0)
             for optimizer in optimizers:
@@ -465,116 +457,17 @@ class PEARLPlus(OffPolicyAlgorithm):
             self.logger.record(f"train/{key}", float(np.mean(values)))
 
     # ------------------------------------------------------------------------------------------
-    # Data collection and the meta-training loop
+    # The meta-training loop
     # ------------------------------------------------------------------------------------------
-    def _plan_iteration(self) -> list[list[Segment]]:
-        """The segments of the next iteration, one program (list of segments) per visited task."""
-        without_data = np.flatnonzero(self.replay_buffer.rl.size == 0)
-        if len(without_data) > 0 and self.num_initial_steps > 0:  # iteration 0 (or an interrupted one): initial prior data
-            return [[Segment(int(t), self.num_initial_steps, "prior", True, True)] for t in without_data]
-        programs = []
-        for task in np.random.randint(len(self.train_tasks), size=self.num_tasks_sample):
-            program = [
-                Segment(int(task), self.num_steps_prior, "prior", True, True),
-                Segment(int(task), self.num_steps_posterior, "posterior", True, False),
-                Segment(int(task), self.num_extra_rl_steps_posterior, "posterior", False, False),
-            ]
-            if self.num_steps_prior == 0:  # the context buffer is still cleared when the task is visited
-                program.insert(0, Segment(int(task), 0, "prior", False, True))
-            programs.append(program)
-        return programs
-
-    def _draw_z(self, segment: Segment) -> th.Tensor:
-        """z for a new trajectory: from the prior, or from the posterior of the task's context buffer."""
-        if segment.z_source == "posterior" and self.replay_buffer.context.size[segment.task] > 0:
-            ctx = self.replay_buffer.context.sample(np.array([segment.task]), self.embedding_batch_size, self.device)
-            with th.no_grad():
-                context = self.policy.make_context(ctx.observations, ctx.actions, ctx.rewards, ctx.next_observations)
-                mean, var = self.encoder.posterior(context)
-            return (mean + var.sqrt() * th.randn_like(mean))[0]
-        return th.randn(self.latent_dim, device=self.device)
-
-    def _start_segment(self, env: VecEnv, slot: int, segment: Segment, obs: np.ndarray) -> None:
-        """Switch env ``slot`` to the segment's task and reset it explicitly (no auto-reset leak)."""
-        env.env_method("set_task", self.train_tasks[segment.task], indices=[slot])
-        obs[slot] = env.env_method("reset", indices=[slot])[0][0]
-
-    def _collect_iteration(self, env: VecEnv, callback: BaseCallback, programs: list[list[Segment]]) -> tuple[int, int, bool]:
-        """
-        Run the programs on the envs, each env one task at a time.
-
-        :return: steps collected, steps planned, whether training should go on
-        """
-        planned = sum(seg.n_steps for program in programs for seg in program)
-        queue = deque(deque(program) for program in programs)
-        n_envs = env.num_envs
-        # Each env runs one program (the segments of one task visit, in order) at a time.
-        running: list[deque[Segment]] = [deque() for _ in range(n_envs)]
-        segments: list[Segment | None] = [None] * n_envs
-        remaining = np.zeros(n_envs, dtype=np.int64)
-        z = th.zeros(n_envs, self.latent_dim, device=self.device)
-        obs = np.array(self._last_obs, dtype=np.float32)  # type: ignore[arg-type]
-        collected = 0
-        callback.on_rollout_start()
-        while True:
-            for slot in range(n_envs):
-                while remaining[slot] == 0 and (running[slot] or queue):
-                    if not running[slot]:
-                        running[slot] = queue.popleft()
-                    segment = running[slot].popleft()
-                    if segment.clear_context:
-                        self.replay_buffer.context.clear(segment.task)
-                    if segment.n_steps > 0:
-                        self._start_segment(env, slot, segment, obs)
-                        segments[slot] = segment
-                        remaining[slot] = segment.n_steps
-                        z[slot] = self._draw_z(segment)
-            active = np.flatnonzero(remaining > 0)
-            if len(active) == 0:
-                break
-            if self.num_timesteps >= self._total_timesteps:
-                break
-
-            with th.no_grad():
-                actions = self.policy.act(th.as_tensor(obs, device=self.device), z).cpu().numpy()
-            env_actions = actions if self.policy.discrete else self.policy.unscale_action(actions)
-            new_obs, rewards, dones, infos = env.step(env_actions)
-
-            for slot in active.tolist():
-                current = segments[slot]
-                assert current is not None
-                next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]  # type: ignore[call-overload,index]
-                terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
-                stored_action = actions[slot].reshape(-1)
-                self.replay_buffer.rl.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
-                if current.add_to_context:
-                    self.replay_buffer.context.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
-                remaining[slot] -= 1
-                if dones[slot]:
-                    self._episode_num += 1
-                    if remaining[slot] > 0:
-                        z[slot] = self._draw_z(current)  # z is drawn once per trajectory
-            collected += len(active)
-            self.num_timesteps += len(active)
-            obs = np.array(new_obs, dtype=np.float32)
-            self._update_info_buffer([infos[i] for i in active], dones[active])
-            callback.update_locals(locals())
-            if not callback.on_step():
-                callback.on_rollout_end()
-                return collected, planned, False
-        self._last_obs = obs
-        callback.on_rollout_end()
-        return collected, planned, True
-
     def learn(
-        self: SelfPEARLPlus,
+        self: SelfPEARL,
         total_timesteps: int,
         callback: MaybeCallback = None,
         log_interval: int = 1,
-        tb_log_name: str = "PEARLPlus",
+        tb_log_name: str = "PEARL",
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
-    ) -> SelfPEARLPlus:
+    ) -> SelfPEARL:
         """
         Meta-train for ``total_timesteps`` env steps (Algorithm 1).
 
@@ -591,7 +484,7 @@ class PEARLPlus(OffPolicyAlgorithm):
         callback.on_training_start(locals(), globals())
         assert self.env is not None
         while self.num_timesteps < total_timesteps:
-            collected, planned, continue_training = self._collect_iteration(self.env, callback, self._plan_iteration())
+            collected, planned, continue_training = collect_iteration(self, self.env, callback, plan_iteration(self))
             if not continue_training:
                 break
             if collected > 0:
@@ -633,17 +526,21 @@ class PEARLPlus(OffPolicyAlgorithm):
             stored = self.policy.scale_action(np.asarray(action, dtype=np.float32).reshape(self.action_space.shape))  # type: ignore[arg-type]
         self._adapt_context.append((obs, stored.reshape(-1).astype(np.float32), float(reward), next_obs))
 
-    def infer_posterior(self) -> tuple[th.Tensor, th.Tensor]:
-        """Posterior mean and variance (each (latent_dim,)) from everything observed since the last reset."""
-        if not self._adapt_context:
-            return th.zeros(self.latent_dim, device=self.device), th.ones(self.latent_dim, device=self.device)
+    def _adaptation_context(self) -> th.Tensor:
+        """Everything observed since the last reset as one task's context, (1, N, context_dim)."""
         obs, actions, rewards, next_obs = (np.stack(column) for column in zip(*self._adapt_context))
         tensors = [
             th.as_tensor(a, device=self.device, dtype=th.float32)[None] for a in (obs, actions, rewards[:, None], next_obs)
         ]
+        return self.policy.make_context(*tensors)
+
+    def infer_posterior(self) -> tuple[th.Tensor, th.Tensor]:
+        """Posterior mean and variance (each (latent_dim,)) from everything observed since the last reset."""
+        if not self._adapt_context:
+            return th.zeros(self.latent_dim, device=self.device), th.ones(self.latent_dim, device=self.device)
         with th.no_grad():
-            mean, var = self.encoder.posterior(self.policy.make_context(*tensors))  # (1, L) each
-        return mean[0], var[0]
+            posterior = self.sample_posterior(self._adaptation_context(), sample=False)
+        return posterior.mean[0], posterior.var[0]
 
     def adapt(self, sample_z: bool = True) -> None:
         """
@@ -651,8 +548,13 @@ class PEARLPlus(OffPolicyAlgorithm):
 
         :param sample_z: draw z from the posterior (the reference's meta-test) or use its mean
         """
-        mean, var = self.infer_posterior()
-        self.policy.current_z = mean + var.sqrt() * th.randn_like(mean) if sample_z else mean
+        if not self._adapt_context:  # nothing observed: a new draw from the prior
+            self.policy.current_z = (
+                th.randn(self.latent_dim, device=self.device) if sample_z else th.zeros(self.latent_dim, device=self.device)
+            )
+            return
+        with th.no_grad():
+            self.policy.current_z = self.sample_posterior(self._adaptation_context(), sample=sample_z).z[0]
 
     # ------------------------------------------------------------------------------------------
     # Save / load
@@ -685,33 +587,3 @@ class PEARLPlus(OffPolicyAlgorithm):
         if buffer.n_tasks != len(self.train_tasks):
             raise ValueError(f"the replay buffer holds {buffer.n_tasks} tasks but the model has {len(self.train_tasks)}")
         self.replay_buffer = buffer
-
-
-class PEARL(PEARLPlus):
-    """
-    PEARL (Rakelly et al. 2019): PEARL+ without the prior term and without a prior critic.
-
-    Takes every argument of :class:`PEARLPlus` except ``prior_coef``, ``prior_critic``,
-    ``prior_critic_arch`` and ``prior_n_critics``.
-    """
-
-    def __init__(self, policy: str | type[PEARLPolicy], env: GymEnv | str, **kwargs: Any):
-        for name in ("prior_coef", "prior_critic", "prior_critic_arch", "prior_n_critics"):
-            if name in kwargs:
-                raise ValueError(f"PEARL has no {name!r}: use PEARLPlus for the prior-regularised algorithm")
-        super().__init__(policy, env, prior_coef=0.0, prior_critic="none", **kwargs)
-
-    @staticmethod
-    def _prior_critic_modes() -> tuple[str, ...]:
-        return ("none",)
-
-    def learn(  # type: ignore[override]
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 1,
-        tb_log_name: str = "PEARL",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> PEARL:
-        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)

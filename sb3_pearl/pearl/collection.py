@@ -1,0 +1,144 @@
+"""Data collection of PEARL / PEARL+ (Algorithm 1's inner loop over tasks), one task per env at a time.
+
+Iteration 0 collects ``num_initial_steps`` per training task with z from the prior; every later
+iteration picks ``num_tasks_sample`` training tasks and, for each, clears its context buffer and
+collects ``num_steps_prior`` steps with z from the prior, ``num_steps_posterior`` steps with z from
+the posterior (both also stored as context) and ``num_extra_rl_steps_posterior`` posterior steps for
+the RL buffer only. z is drawn once per trajectory. Each visit is a *program*: a list of
+:class:`Segment`, run in order on one env; with ``n_envs > 1`` every env runs its own program.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecEnv
+
+if TYPE_CHECKING:
+    from sb3_pearl.pearl.pearl import PEARL
+
+
+class Segment(NamedTuple):
+    """A stretch of data collection on one training task (one line of Algorithm 1's inner loop)."""
+
+    task: int  # index into train_tasks
+    n_steps: int
+    z_source: str  # "prior": z ~ N(0, I); "posterior": z ~ q(z | context buffer of the task)
+    add_to_context: bool  # also store the data in the task's context buffer
+    clear_context: bool  # clear the task's context buffer before collecting
+
+
+def plan_iteration(model: PEARL) -> list[list[Segment]]:
+    """The segments of the next iteration, one program (list of segments) per visited task."""
+    without_data = np.flatnonzero(model.replay_buffer.rl.size == 0)
+    if len(without_data) > 0 and model.num_initial_steps > 0:  # iteration 0 (or an interrupted one): initial prior data
+        return [
+            [Segment(task=int(t), n_steps=model.num_initial_steps, z_source="prior", add_to_context=True, clear_context=True)]
+            for t in without_data
+        ]
+    programs = []
+    for task in np.random.randint(len(model.train_tasks), size=model.num_tasks_sample):
+        t = int(task)
+        program = [
+            Segment(task=t, n_steps=model.num_steps_prior, z_source="prior", add_to_context=True, clear_context=True),
+            Segment(t, n_steps=model.num_steps_posterior, z_source="posterior", add_to_context=True, clear_context=False),
+            Segment(
+                t,
+                n_steps=model.num_extra_rl_steps_posterior,
+                z_source="posterior",
+                add_to_context=False,
+                clear_context=False,
+            ),
+        ]
+        if model.num_steps_prior == 0:  # the context buffer is still cleared when the task is visited
+            program.insert(0, Segment(t, n_steps=0, z_source="prior", add_to_context=False, clear_context=True))
+        programs.append(program)
+    return programs
+
+
+def draw_z(model: PEARL, segment: Segment) -> th.Tensor:
+    """z for a new trajectory: from the prior, or from the posterior of the task's context buffer."""
+    if segment.z_source == "posterior" and model.replay_buffer.context.size[segment.task] > 0:
+        with th.no_grad():
+            return model.sample_posterior(model._sample_context(np.array([segment.task]))).z[0]
+    return th.randn(model.latent_dim, device=model.device)
+
+
+def start_segment(model: PEARL, env: VecEnv, slot: int, segment: Segment, obs: np.ndarray) -> None:
+    """Switch env ``slot`` to the segment's task and reset it explicitly (no auto-reset leak)."""
+    env.env_method("set_task", model.train_tasks[segment.task], indices=[slot])
+    obs[slot] = env.env_method("reset", indices=[slot])[0][0]
+
+
+def collect_iteration(
+    model: PEARL, env: VecEnv, callback: BaseCallback, programs: list[list[Segment]]
+) -> tuple[int, int, bool]:
+    """
+    Run the programs on the envs, each env one task at a time.
+
+    :return: steps collected, steps planned, whether training should go on
+    """
+    planned = sum(seg.n_steps for program in programs for seg in program)
+    queue = deque(deque(program) for program in programs)
+    n_envs = env.num_envs
+    # Each env runs one program (the segments of one task visit, in order) at a time.
+    running: list[deque[Segment]] = [deque() for _ in range(n_envs)]
+    segments: list[Segment | None] = [None] * n_envs
+    remaining = np.zeros(n_envs, dtype=np.int64)
+    z = th.zeros(n_envs, model.latent_dim, device=model.device)
+    obs = np.array(model._last_obs, dtype=np.float32)  # type: ignore[arg-type]
+    collected = 0
+    callback.on_rollout_start()
+    while True:
+        for slot in range(n_envs):
+            while remaining[slot] == 0 and (running[slot] or queue):
+                if not running[slot]:
+                    running[slot] = queue.popleft()
+                segment = running[slot].popleft()
+                if segment.clear_context:
+                    model.replay_buffer.context.clear(segment.task)
+                if segment.n_steps > 0:
+                    start_segment(model, env, slot, segment, obs)
+                    segments[slot] = segment
+                    remaining[slot] = segment.n_steps
+                    z[slot] = draw_z(model, segment)
+        active = np.flatnonzero(remaining > 0)
+        if len(active) == 0:
+            break
+        if model.num_timesteps >= model._total_timesteps:
+            break
+
+        with th.no_grad():
+            actions = model.policy.act(th.as_tensor(obs, device=model.device), z).cpu().numpy()
+        env_actions = actions if model.policy.discrete else model.policy.unscale_action(actions)
+        new_obs, rewards, dones, infos = env.step(env_actions)
+
+        for slot in active.tolist():
+            current = segments[slot]
+            assert current is not None
+            next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]  # type: ignore[call-overload,index]
+            terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
+            stored_action = actions[slot].reshape(-1)
+            model.replay_buffer.rl.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
+            if current.add_to_context:
+                model.replay_buffer.context.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
+            remaining[slot] -= 1
+            if dones[slot]:
+                model._episode_num += 1
+                if remaining[slot] > 0:
+                    z[slot] = draw_z(model, current)  # z is drawn once per trajectory
+        collected += len(active)
+        model.num_timesteps += len(active)
+        obs = np.array(new_obs, dtype=np.float32)
+        model._update_info_buffer([infos[i] for i in active], dones[active])
+        callback.update_locals(locals())
+        if not callback.on_step():
+            callback.on_rollout_end()
+            return collected, planned, False
+    model._last_obs = obs
+    callback.on_rollout_end()
+    return collected, planned, True

@@ -1,0 +1,137 @@
+"""PEARL+ : PEARL with the paper's prior-regularisation term and prior critic."""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar
+
+import torch as th
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+
+from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.pearl.pearl import PEARL
+from sb3_pearl.pearl.policies import PRIOR_CRITIC_MODES, PEARLPolicy
+
+SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
+
+
+class PEARLPlus(PEARL):
+    """
+    PEARL+ : PEARL with a prior-regularisation term (Algorithm 1 of the paper).
+
+    The actor minimises ``L_actor(b, z.detach()) + prior_coef * L_actor(b, z0)`` with
+    ``z ~ q(z | c)`` and ``z0 ~ N(0, I)`` (one z0 per task, held across the task's rows), so that the
+    policy acts well *before* it has seen any data of a new task. The prior term is scored by an
+    extra prior critic Q~(s, a, z0) with its own soft Bellman loss (``prior_critic="separate"``) or,
+    for the ablation PEARL+ (w/o), by the critic Q(s, a, z0) (``prior_critic="shared"``). The
+    encoder is trained by the critic loss and the KL only.
+
+    ``prior_coef=0`` is PEARL exactly: no prior critic is built or trained (same networks, same
+    numbers as :class:`PEARL` for the same seed).
+
+    Takes every argument of :class:`PEARL`, and:
+
+    :param prior_coef: weight ``alpha`` of the prior term (paper default 0.1); 0 gives PEARL
+    :param prior_critic: ``"separate"`` (PEARL+) or ``"shared"`` (ablation PEARL+ (w/o))
+    :param prior_critic_arch: hidden sizes of the prior critic (paper: [300, 300, 300]; ablation [100, 100, 100])
+    :param prior_n_critics: Q networks in the prior critic (the paper: one new Q-network; 2 adds a twin minimum)
+    """
+
+    def __init__(
+        self,
+        policy: str | type[PEARLPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 100_000,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        prior_coef: float = 0.1,
+        prior_critic: str = "separate",
+        prior_critic_arch: list[int] | None = None,
+        prior_n_critics: int = 1,
+        latent_dim: int = 5,
+        kl_weight: float = 0.1,
+        use_next_obs_in_context: bool = False,
+        encoder_arch: list[int] | None = None,
+        ent_coef: str | float = "auto",
+        target_entropy: str | float = "auto",
+        reward_scale: float = 1.0,
+        n_train_tasks: int = 100,
+        n_test_tasks: int = 30,
+        train_tasks: list[Task] | None = None,
+        test_tasks: list[Task] | None = None,
+        meta_batch: int = 16,
+        embedding_batch_size: int = 100,
+        num_initial_steps: int = 2000,
+        num_tasks_sample: int = 5,
+        num_steps_prior: int = 400,
+        num_steps_posterior: int = 0,
+        num_extra_rl_steps_posterior: int = 600,
+        num_train_steps_per_itr: int = 2000,
+        use_bf16: bool = False,
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        if not prior_coef >= 0:
+            raise ValueError(f"prior_coef must be >= 0 (the paper's alpha > 0; 0 gives PEARL), got {prior_coef}")
+        modes = tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none")
+        if prior_critic not in modes:
+            raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {modes} (PEARL has none)")
+        # Set before PEARL's constructor, which builds the prior critic only when the prior term uses it.
+        self.prior_coef = prior_coef
+        self.prior_critic_mode = prior_critic
+        policy_kwargs = {**(policy_kwargs or {}), "prior_n_critics": prior_n_critics}
+        if prior_critic_arch is not None:
+            policy_kwargs["prior_critic_arch"] = prior_critic_arch
+        super().__init__(
+            policy,
+            env,
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            latent_dim=latent_dim,
+            kl_weight=kl_weight,
+            use_next_obs_in_context=use_next_obs_in_context,
+            encoder_arch=encoder_arch,
+            ent_coef=ent_coef,
+            target_entropy=target_entropy,
+            reward_scale=reward_scale,
+            n_train_tasks=n_train_tasks,
+            n_test_tasks=n_test_tasks,
+            train_tasks=train_tasks,
+            test_tasks=test_tasks,
+            meta_batch=meta_batch,
+            embedding_batch_size=embedding_batch_size,
+            num_initial_steps=num_initial_steps,
+            num_tasks_sample=num_tasks_sample,
+            num_steps_prior=num_steps_prior,
+            num_steps_posterior=num_steps_posterior,
+            num_extra_rl_steps_posterior=num_extra_rl_steps_posterior,
+            num_train_steps_per_itr=num_train_steps_per_itr,
+            use_bf16=use_bf16,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+            _init_setup_model=_init_setup_model,
+        )
+
+    def learn(
+        self: SelfPEARLPlus,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str = "PEARLPlus",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfPEARLPlus:
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
