@@ -22,7 +22,7 @@ import numpy as np
 import torch as th
 
 from sb3_pearl import PEARL, PEARLPlus
-from sb3_pearl.common import evaluation
+from sb3_pearl.common.meta_test import meta_test as run_meta_test
 
 # The reference point-robot settings (oyster configs/point-robot.json: fixed entropy 1,
 # reward_scale 100, kl 0.1), scaled down to run in minutes on one core.
@@ -47,7 +47,7 @@ SETTINGS: dict[str, Any] = dict(
 
 def meta_test(model: PEARLPlus, n_adapt: int) -> dict[str, np.ndarray]:
     """The project's meta-test protocol on the held-out tasks: returns and violations, (n_test_tasks, n_adapt + 1)."""
-    result = evaluation.meta_test(model, gym.make("SafePointGoalMeta-v0"), model.test_tasks, n_adapt=n_adapt, seed=0)
+    result = run_meta_test(model, gym.make("SafePointGoalMeta-v0"), model.test_tasks, n_adapt=n_adapt, seed=0)
     shape = (len(model.test_tasks), n_adapt + 1)
     returns, violated = np.zeros(shape), np.zeros(shape)
     for row in result.rows:

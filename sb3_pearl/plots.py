@@ -1,12 +1,14 @@
-"""Figures of the meta-test (matplotlib, Agg backend): adaptation curves, violation bars, b_min scatter, speed profiles.
+"""Figures of the meta-test (matplotlib, Agg backend): adaptation curves, violation bars, b_min scatter, step traces.
 
 Command line, over one or more run folders (each holding ``meta_test.json``) or JSON files::
 
     python -m sb3_pearl.plots logs/pearl/SafePointGoalMeta-v0_1 logs/pearlplus/SafePointGoalMeta-v0_1 -o cmp.png
 
 writes ``cmp.png`` (adaptation curves: return and violation rate vs k, one line per run),
-``cmp_violations.png`` (violation-rate bars at k = 0, 1, 3, 5) and, when the runs recorded them
-(the merge family), ``cmp_b_min.png`` and ``cmp_speed.png``. ``--kind`` picks one figure.
+``cmp_violations.png`` (violation-rate bars at k = 0, 1, 3, 5) and, when the runs recorded them,
+``cmp_b_min.png`` (the rows hold ``b_min``: the merge family) and ``cmp_speed.png`` (per-step
+traces: the first of the family's ``step_trace_keys`` found, e.g. the merge family's ``ego_speed``).
+``--kind`` picks one figure.
 """
 
 from __future__ import annotations
@@ -23,9 +25,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from sb3_pearl.common.evaluation import PAPER_KS, MetaTestResult  # noqa: E402
+from sb3_pearl.common.meta_test import PAPER_KS, MetaTestResult  # noqa: E402
 
 KINDS = ("adaptation", "violations", "b_min", "speed")
+# The merge family's per-trajectory minimum braking at the merge [m/s^2] (a trajectory info key of its rows).
+B_MIN_KEY = "b_min"
 
 
 def load_run(path: str | os.PathLike[str]) -> tuple[str, MetaTestResult]:
@@ -139,9 +143,14 @@ def plot_violation_bars(
     _save(fig, path)
 
 
+def has_row_values(runs: Mapping[str, MetaTestResult], key: str) -> bool:
+    """Whether any run's rows hold a finite value of the per-trajectory entry ``key``."""
+    return any(np.isfinite(float(row.get(key, np.nan))) for result in runs.values() for row in result.rows)
+
+
 def has_b_min(runs: Mapping[str, MetaTestResult]) -> bool:
     """Whether any run recorded the merge family's ``b_min``."""
-    return any(np.isfinite(float(row.get("b_min", np.nan))) for result in runs.values() for row in result.rows)
+    return has_row_values(runs, B_MIN_KEY)
 
 
 def plot_b_min(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str], title: str = "") -> None:
@@ -156,9 +165,9 @@ def plot_b_min(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str],
     rng = np.random.default_rng(0)
     offsets = np.linspace(-0.2, 0.2, max(1, len(runs))) if len(runs) > 1 else np.zeros(1)
     for offset, (label, result) in zip(offsets, runs.items()):
-        rows = [row for row in result.rows if np.isfinite(float(row.get("b_min", np.nan)))]
+        rows = [row for row in result.rows if np.isfinite(float(row.get(B_MIN_KEY, np.nan)))]
         ks = np.array([row["k"] for row in rows], dtype=float)
-        values = np.array([row["b_min"] for row in rows], dtype=float)
+        values = np.array([row[B_MIN_KEY] for row in rows], dtype=float)
         ax.scatter(ks + offset + rng.uniform(-0.05, 0.05, len(ks)), values, s=12, alpha=0.7, label=label)
     ax.set_xlabel("trajectory k (0 = prior)")
     ax.set_ylabel("b_min [m/s^2]")
@@ -168,27 +177,43 @@ def plot_b_min(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str],
     _save(fig, path)
 
 
-def has_traces(runs: Mapping[str, MetaTestResult], key: str = "ego_speed") -> bool:
-    """Whether any run recorded per-step traces of ``key``."""
+def trace_keys(runs: Mapping[str, MetaTestResult]) -> list[str]:
+    """The per-step trace keys the runs hold, in the order their families declare them (``step_trace_keys``)."""
+    keys: dict[str, None] = {}
+    for result in runs.values():
+        keys.update((key, None) for key in result.trace_keys if any(key in trace for trace in result.traces))
+    return list(keys)
+
+
+def has_traces(runs: Mapping[str, MetaTestResult], key: str | None = None) -> bool:
+    """Whether any run recorded per-step traces of ``key`` (None: of any key)."""
+    if key is None:
+        return bool(trace_keys(runs))
     return any(key in trace for result in runs.values() for trace in result.traces)
 
 
 def plot_speed_profiles(
     runs: Mapping[str, MetaTestResult],
     path: str | os.PathLike[str],
-    key: str = "ego_speed",
+    key: str | None = None,
     after_k: int | None = None,
     title: str = "",
 ) -> None:
     """
-    Speed profiles before (k = 0) and after adaptation (k = ``after_k``, default the last k): one row per run.
+    Step-trace profiles (e.g. the merge family's ego speed) before (k = 0) and after adaptation (k = ``after_k``,
+    default the last k): one row per run.
 
     :param runs: results by label
     :param path: PNG file
-    :param key: the traced info entry
+    :param key: the traced info entry (None: the first one the runs hold, see :func:`trace_keys`)
     :param after_k: the trajectory shown as "after adaptation"
     :param title: figure title
     """
+    if key is None:
+        keys = trace_keys(runs)
+        if not keys:
+            raise ValueError("plot_speed_profiles: the runs hold no per-step traces (their env declares no step_trace_keys)")
+        key = keys[0]
     n = max(1, len(runs))
     fig, axes = plt.subplots(n, 2, figsize=(10, 3 * n), squeeze=False, sharey=True)
     for row_axes, (label, result) in zip(axes, runs.items()):

@@ -16,16 +16,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
 from sb3_pearl import PEARLPlus
 from sb3_pearl.common.callbacks import MetaTestCallback
-from sb3_pearl.common.evaluation import (
-    ROW_COLUMNS,
-    SUMMARY_COLUMNS,
-    MetaTestResult,
-    cvar,
-    get_test_tasks,
-    meta_test,
-    summarize,
-    wilson_interval,
-)
+from sb3_pearl.common.meta_test import ROW_COLUMNS, MetaTestResult, get_test_tasks, meta_test
+from sb3_pearl.common.statistics import SUMMARY_COLUMNS, cvar, summarize, wilson_interval
 from sb3_pearl.envs.task_protocol import MetaTaskEnv
 
 HORIZON = 3
@@ -36,11 +28,13 @@ class GuessEnv(MetaTaskEnv, gym.Env):
     """Task: a target action in {0, 1, 2}; reward 1 per step that plays it; action 3 costs 1; 3 steps.
 
     ``info`` carries merge-family style extras: ``b_min`` on step 2 only, ``merged`` every step,
-    ``ego_speed`` (the step index) for the traces.
+    ``ego_speed`` (the step index) for the traces; declared as the merge family declares them.
     """
 
     observation_space = spaces.Box(0.0, 1.0, (1,), np.float32)
     action_space = spaces.Discrete(4)
+    trajectory_info_keys = ("merged", "crashed", "b_min", "rear_deceleration")
+    step_trace_keys = ("ego_speed",)
 
     def __init__(self) -> None:
         self._init_task()
@@ -206,6 +200,24 @@ def test_csv_and_json_schema(tmp_path: Any) -> None:
     assert data["traces"][0] == {"task": 0, "repeat": 0, "k": 0, "ego_speed": [1.0, 2.0, 3.0]}
     back = MetaTestResult.from_json(tmp_path / "m.json")
     assert back.rows == result.rows and back.summary == result.summary
+
+
+def test_info_keys_come_from_the_family() -> None:
+    _, result = run_protocol()
+    assert result.config["trajectory_info_keys"] == list(GuessEnv.trajectory_info_keys)
+    assert result.config["step_trace_keys"] == ["ego_speed"]
+
+    class UndeclaredEnv(GuessEnv):
+        trajectory_info_keys = ()
+        step_trace_keys = ()
+
+    plain = meta_test(ScriptedModel(), UndeclaredEnv(), TASKS, n_adapt=1)
+    assert set(plain.rows[0]) == set(ROW_COLUMNS) and plain.traces == [] and plain.columns == list(ROW_COLUMNS)
+    assert "b_min_mean" not in plain.summary[0]
+    # an explicit trace_keys overrides the family's, also through a generic VecEnv
+    traced = meta_test(ScriptedModel(), VecMonitor(DummyVecEnv([UndeclaredEnv])), TASKS, n_adapt=1, trace_keys=["ego_speed"])
+    assert traced.traces[0] == {"task": 0, "repeat": 0, "k": 0, "ego_speed": [1.0, 2.0, 3.0]}
+    assert traced.config["step_trace_keys"] == ["ego_speed"]
 
 
 def test_vec_envs_give_the_same_rows() -> None:

@@ -8,7 +8,7 @@ import pytest
 import torch as th
 
 from sb3_pearl import PEARL
-from sb3_pearl.common.evaluation import meta_test
+from sb3_pearl.common.meta_test import meta_test
 
 # Reference point-robot settings (oyster configs/point-robot.json: fixed entropy 1, reward_scale 100,
 # kl 0.1), scaled down: 40/10 tasks, 64x64 networks, 16k env steps (about a minute on one core).

@@ -10,13 +10,15 @@ import gymnasium as gym
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_pearl.common.evaluation import SUMMARY_COLUMNS, MetaTestResult, check_adaptive, get_test_tasks, meta_test
+from sb3_pearl.common.adaptation import check_adaptive
+from sb3_pearl.common.meta_test import MetaTestResult, get_test_tasks, meta_test
+from sb3_pearl.common.statistics import SUMMARY_COLUMNS
 from sb3_pearl.envs.task_protocol import Task
 
 
 class MetaTestCallback(BaseCallback):
     """
-    Run the meta-test protocol (:func:`sb3_pearl.common.evaluation.meta_test`) every ``eval_freq`` calls.
+    Run the meta-test protocol (:func:`sb3_pearl.common.meta_test.meta_test`) every ``eval_freq`` calls.
 
     The numbers go to the model's logger under ``meta_test/``: ``return_k<k>``,
     ``violation_rate_k<k>``, ``cvar10_k<k>`` for every k, plus ``return_prior`` (k = 0) and

@@ -16,7 +16,6 @@ from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Logger
@@ -26,6 +25,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import ConstantSchedule, get_parameters_by_name
 from stable_baselines3.sac.policies import SACPolicy
 
+from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
@@ -106,7 +106,7 @@ class FineTune(DiscreteSAC):
     :param _init_setup_model: build the networks at construction
     """
 
-    # Read by the meta-test protocol (sb3_pearl.common.evaluation): False keeps its deterministic
+    # Read by the meta-test protocol (sb3_pearl.common.meta_test): False keeps its deterministic
     # trajectories, as for PEARL / PEARL+. Fine-tuning learns from them, but after one deterministic
     # trajectory it is worse than k = 0 on the point robot, unlike after one stochastic trajectory
     # (docs/finetune.md, measurements).
@@ -365,11 +365,7 @@ class FineTune(DiscreteSAC):
         next_obs_arr = np.asarray(next_obs, dtype=np.float32)
         if obs_arr.size != int(np.prod(obs_shape)) or next_obs_arr.size != int(np.prod(obs_shape)):
             raise ValueError(f"observe() takes one transition: obs and next_obs of shape {obs_shape}, got {np.shape(obs)}")
-        if isinstance(self.action_space, spaces.Box):
-            env_action = np.clip(np.asarray(action, dtype=np.float32).reshape(self.action_space.shape), *self._action_bounds())
-            buffer_action = self.policy.scale_action(env_action).reshape(1, -1)
-        else:
-            buffer_action = np.array([[int(np.asarray(action).reshape(-1)[0])]])
+        buffer_action = stored_action(self.action_space, action).reshape(1, -1)
         self._adapt_episode_steps += 1
         done = bool(np.asarray(done).reshape(-1)[0])
         truncated = done and self.max_episode_steps is not None and self._adapt_episode_steps >= self.max_episode_steps
@@ -383,10 +379,6 @@ class FineTune(DiscreteSAC):
         )
         if done:
             self._adapt_episode_steps = 0
-
-    def _action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        assert isinstance(self.action_space, spaces.Box)
-        return self.action_space.low, self.action_space.high
 
     def adapt(self) -> None:
         """

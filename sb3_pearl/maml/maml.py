@@ -32,6 +32,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import safe_mean
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
+from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.policies import MAMLPolicy, MlpPolicy, Params
@@ -704,8 +705,9 @@ class MAML(BaseAlgorithm):
         obs_flat = np.asarray(obs, dtype=np.float32).reshape(-1)
         if obs_flat.shape[0] != self.policy.obs_dim:
             raise ValueError(f"observe: expected one observation of size {self.policy.obs_dim}, got shape {np.shape(obs)}")
+        stored = stored_action(self.action_space, action)
         if self.policy.continuous:
-            scaled = self.policy.scale_action(np.asarray(action, dtype=np.float32).reshape(self.action_space.shape))
+            scaled = stored
             raw = self.policy.last_raw_actions
             # Recover the unclipped sample behind the (clipped) env action when it is the one predict() returned.
             if raw is not None and raw.shape[0] == 1:
@@ -713,8 +715,6 @@ class MAML(BaseAlgorithm):
                 if np.allclose(np.clip(raw_np, -1.0, 1.0), scaled, atol=1e-5):
                     scaled = raw_np
             stored = np.asarray(scaled, dtype=np.float32).reshape(-1)
-        else:
-            stored = np.asarray([int(np.asarray(action).reshape(-1)[0])], dtype=np.float32)
         observations, actions, rewards = self._current_episode
         observations.append(obs_flat)
         actions.append(stored)

@@ -21,6 +21,7 @@ from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
 
+from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.context import kl_to_standard_normal
 from sb3_pearl.common.soft_actor_critic import (
@@ -520,11 +521,7 @@ class PEARL(OffPolicyAlgorithm):
         next_obs = np.asarray(next_obs, dtype=np.float32).reshape(-1)
         if obs.shape != (obs_dim,) or next_obs.shape != (obs_dim,):
             raise ValueError(f"observe() takes one transition: obs and next_obs of shape ({obs_dim},)")
-        if self.policy.discrete:
-            stored = np.array([int(np.asarray(action).reshape(-1)[0])], dtype=np.float32)
-        else:
-            stored = self.policy.scale_action(np.asarray(action, dtype=np.float32).reshape(self.action_space.shape))  # type: ignore[arg-type]
-        self._adapt_context.append((obs, stored.reshape(-1).astype(np.float32), float(reward), next_obs))
+        self._adapt_context.append((obs, stored_action(self.action_space, action), float(reward), next_obs))
 
     def _adaptation_context(self) -> th.Tensor:
         """Everything observed since the last reset as one task's context, (1, N, context_dim)."""

@@ -1,19 +1,21 @@
-"""The meta-test protocol behind every number of the paper, for any algorithm with the adaptation API.
+"""The meta-test protocol behind every number of the paper, for any model with the adaptation API.
 
 For each test task and each repeat: the task is set, the model forgets everything task-specific
 (``reset_adaptation()``), then trajectories ``k = 0..n_adapt`` are rolled out in sequence.
 Trajectory ``k = 0`` acts with the prior (no ``adapt()`` call before it); trajectory ``k`` acts
 after ``adapt()`` on every transition of trajectories ``0..k-1`` (each one passed to
-``observe()`` as it happens). Actions are deterministic by default.
+``observe()`` as it happens). Actions are deterministic by default. The adaptation API is
+:class:`sb3_pearl.common.adaptation.AdaptiveModel`.
 
 One row per (task, repeat, k): ``return``, ``cost`` (sum of ``info["cost"]``), ``length``,
-``violated`` (any cost) and the family extras found in ``info`` (:data:`EXTRA_INFO_KEYS`, e.g.
-``b_min`` and ``merged`` for the merge family; the last value seen in the trajectory). Per-step
-traces of :data:`TRACE_INFO_KEYS` (the merge family's ``ego_speed``) are kept for the plots.
+``violated`` (any cost) and the family extras: the ``info`` entries the env's family declares in
+``trajectory_info_keys`` (e.g. ``b_min`` and ``merged`` for the merge family; the last value seen
+in the trajectory). Per-step traces of the family's ``step_trace_keys`` (the merge family's
+``ego_speed``) are kept for the plots. Both are class attributes of
+:class:`sb3_pearl.envs.task_protocol.MetaTaskEnv`; the keys used are recorded in the result's config.
 
-The summary per k (:func:`summarize`): mean and std of the return, the violation rate with its
-95% Wilson interval, the CVaR_10% of the return over tasks and the cumulative violations up to k.
-The paper's "0/1/3/5 traj." columns are :data:`PAPER_KS`.
+The summary per k is :func:`sb3_pearl.common.statistics.summarize`; the paper's "0/1/3/5 traj."
+columns are :data:`PAPER_KS`.
 """
 
 from __future__ import annotations
@@ -24,153 +26,21 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
+from sb3_pearl.common.adaptation import AdaptiveModel, check_adaptive
+from sb3_pearl.common.statistics import format_summary_table, summarize
 from sb3_pearl.envs.task_protocol import Task
 
 PAPER_KS = (0, 1, 3, 5)
 ROW_COLUMNS = ("task", "repeat", "k", "return", "cost", "length", "violated")
-# Family extras: scalar info entries recorded per trajectory when the env reports them (last value seen).
-EXTRA_INFO_KEYS = ("merged", "crashed", "b_min", "rear_deceleration")
-# Per-step info entries kept as traces (speed profiles of the merge family).
-TRACE_INFO_KEYS = ("ego_speed",)
-SUMMARY_COLUMNS = (
-    "k",
-    "n",
-    "return_mean",
-    "return_std",
-    "violation_rate",
-    "violation_ci_low",
-    "violation_ci_high",
-    "return_cvar10",
-    "cum_violations",
-)
-WILSON_Z95 = 1.959963984540054
-
-
-@runtime_checkable
-class AdaptiveModel(Protocol):
-    """The adaptation API every algorithm of the project implements (``DESIGN.md``)."""
-
-    def reset_adaptation(self) -> None: ...
-
-    def observe(self, obs: np.ndarray, action: Any, reward: float, next_obs: np.ndarray, done: bool) -> None: ...
-
-    def adapt(self) -> None: ...
-
-    def predict(
-        self,
-        observation: Any,
-        state: Any = None,
-        episode_start: Any = None,
-        deterministic: bool = False,
-    ) -> tuple[Any, Any]: ...
-
-
-def check_adaptive(model: Any) -> None:
-    """
-    Raise a clear error unless ``model`` implements the adaptation API.
-
-    :param model: the model to evaluate
-    """
-    missing = [
-        name for name in ("reset_adaptation", "observe", "adapt", "predict") if not callable(getattr(model, name, None))
-    ]
-    if missing:
-        raise TypeError(
-            f"{type(model).__name__} does not implement the adaptation API (missing {missing}): the meta-test "
-            "protocol needs reset_adaptation(), observe(obs, action, reward, next_obs, done), adapt() and predict()"
-        )
-
-
-# ----------------------------------------------------------------------------------------------
-# Statistics
-# ----------------------------------------------------------------------------------------------
-def wilson_interval(successes: int, n: int, z: float = WILSON_Z95) -> tuple[float, float]:
-    """
-    Wilson score interval of a binomial proportion (95% by default).
-
-    :param successes: number of positive outcomes
-    :param n: number of trials
-    :param z: normal quantile of the interval
-    :return: (low, high); (nan, nan) when ``n == 0``
-    """
-    if n <= 0:
-        return math.nan, math.nan
-    p = successes / n
-    denom = 1.0 + z**2 / n
-    centre = (p + z**2 / (2 * n)) / denom
-    half = z * math.sqrt(p * (1.0 - p) / n + z**2 / (4 * n**2)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def cvar(values: Sequence[float] | np.ndarray, alpha: float = 0.1) -> float:
-    """
-    Conditional value at risk of returns: the mean of the worst ``ceil(alpha * n)`` values (at least one).
-
-    :param values: returns (higher is better)
-    :param alpha: tail share
-    :return: the lower-tail mean; nan for no values
-    """
-    array = np.sort(np.asarray(values, dtype=np.float64))
-    if array.size == 0:
-        return math.nan
-    n_tail = max(1, math.ceil(alpha * array.size - 1e-9))
-    return float(array[:n_tail].mean())
-
-
-def summarize(rows: Sequence[dict[str, Any]], alpha: float = 0.1) -> list[dict[str, Any]]:
-    """
-    The summary per k of meta-test rows.
-
-    - ``return_mean``, ``return_std`` (population std) over all (task, repeat) trajectories at k;
-    - ``violation_rate``: share of those trajectories with any cost, ``violation_ci_low/high`` its
-      95% Wilson interval;
-    - ``return_cvar10``: CVaR_alpha over tasks of the per-task return (mean over repeats);
-    - ``cum_violations``: violating trajectories among 0..k, averaged over (task, repeat);
-    - ``<extra>_mean`` for every numeric family extra present (nan values ignored).
-
-    :param rows: rows as produced by :func:`meta_test`
-    :param alpha: tail share of the CVaR
-    :return: one dict per k, in increasing k
-    """
-    if not rows:
-        return []
-    extra_keys = [key for key in EXTRA_INFO_KEYS if any(key in row for row in rows)]
-    ks = sorted({int(row["k"]) for row in rows})
-    episodes = sorted({(row["task"], row["repeat"]) for row in rows})
-    violated = {(row["task"], row["repeat"], int(row["k"])): bool(row["violated"]) for row in rows}
-    summary = []
-    for k in ks:
-        at_k = [row for row in rows if int(row["k"]) == k]
-        returns = np.array([row["return"] for row in at_k], dtype=np.float64)
-        n_violated = int(sum(bool(row["violated"]) for row in at_k))
-        low, high = wilson_interval(n_violated, len(at_k))
-        per_task: dict[Any, list[float]] = {}
-        for row in at_k:
-            per_task.setdefault(row["task"], []).append(float(row["return"]))
-        cum = [sum(violated.get((task, repeat, j), False) for j in ks if j <= k) for task, repeat in episodes]
-        entry: dict[str, Any] = {
-            "k": k,
-            "n": len(at_k),
-            "return_mean": float(returns.mean()),
-            "return_std": float(returns.std()),
-            "violation_rate": n_violated / len(at_k),
-            "violation_ci_low": low,
-            "violation_ci_high": high,
-            "return_cvar10": cvar([float(np.mean(v)) for v in per_task.values()], alpha),
-            "cum_violations": float(np.mean(cum)),
-        }
-        for key in extra_keys:
-            values = np.array([float(row.get(key, math.nan)) for row in at_k], dtype=np.float64)
-            finite = values[~np.isnan(values)]
-            entry[f"{key}_mean"] = float(finite.mean()) if finite.size else math.nan
-        summary.append(entry)
-    return summary
+# Class attributes of a task family (MetaTaskEnv) naming its per-trajectory extras and per-step traces.
+TRAJECTORY_INFO_KEYS_ATTR = "trajectory_info_keys"
+STEP_TRACE_KEYS_ATTR = "step_trace_keys"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -192,16 +62,24 @@ def _json_value(value: Any) -> Any:
     return value
 
 
+def _csv_value(value: Any) -> Any:
+    if isinstance(value, (bool, np.bool_)):
+        return int(value)
+    if isinstance(value, (float, np.floating)) and math.isnan(value):
+        return ""
+    return value
+
+
 @dataclass
 class MetaTestResult:
     """
     Result of :func:`meta_test`.
 
-    :param rows: one dict per (task, repeat, k) with :data:`ROW_COLUMNS` and the extras found
-    :param summary: one dict per k (:func:`summarize`)
+    :param rows: one dict per (task, repeat, k) with :data:`ROW_COLUMNS` and the family extras found
+    :param summary: one dict per k (:func:`sb3_pearl.common.statistics.summarize`)
     :param tasks: the test tasks, in row order of ``task``
     :param traces: per-step info traces (``{"task", "repeat", "k", <key>: [...]}``)
-    :param config: the protocol settings (n_adapt, n_repeats, deterministic, ...)
+    :param config: the protocol settings (n_adapt, n_repeats, deterministic, the family's info keys, ...)
     """
 
     rows: list[dict[str, Any]]
@@ -211,9 +89,34 @@ class MetaTestResult:
     config: dict[str, Any] = field(default_factory=dict)
 
     @property
+    def info_keys(self) -> list[str]:
+        """
+        The family's per-trajectory extras: ``config["trajectory_info_keys"]`` (as recorded by :func:`meta_test`),
+        else the row entries beyond :data:`ROW_COLUMNS` in order of appearance (results written before it was recorded).
+        """
+        recorded = self.config.get(TRAJECTORY_INFO_KEYS_ATTR)
+        if recorded is not None:
+            return list(recorded)
+        found: dict[str, None] = {}
+        for row in self.rows:
+            found.update((key, None) for key in row if key not in ROW_COLUMNS)
+        return list(found)
+
+    @property
+    def trace_keys(self) -> list[str]:
+        """The per-step traces held: ``config["step_trace_keys"]``, else the keys found in :attr:`traces`."""
+        recorded = self.config.get(STEP_TRACE_KEYS_ATTR)
+        if recorded is not None:
+            return list(recorded)
+        found: dict[str, None] = {}
+        for trace in self.traces:
+            found.update((key, None) for key in trace if key not in ("task", "repeat", "k"))
+        return list(found)
+
+    @property
     def columns(self) -> list[str]:
-        """CSV columns: :data:`ROW_COLUMNS` then the family extras present, in :data:`EXTRA_INFO_KEYS` order."""
-        return [*ROW_COLUMNS, *(key for key in EXTRA_INFO_KEYS if any(key in row for row in self.rows))]
+        """CSV columns: :data:`ROW_COLUMNS` then the family extras present in the rows, in :attr:`info_keys` order."""
+        return [*ROW_COLUMNS, *(key for key in self.info_keys if any(key in row for row in self.rows))]
 
     def summary_at(self, k: int) -> dict[str, Any]:
         """The summary entry of trajectory ``k`` (KeyError if it was not rolled out)."""
@@ -276,30 +179,6 @@ class MetaTestResult:
         return format_summary_table(entries)
 
 
-def _csv_value(value: Any) -> Any:
-    if isinstance(value, (bool, np.bool_)):
-        return int(value)
-    if isinstance(value, (float, np.floating)) and math.isnan(value):
-        return ""
-    return value
-
-
-def format_summary_table(entries: Sequence[dict[str, Any]]) -> str:
-    """
-    Plain-text table of summary entries: k, return mean +- std, CVaR_10%, violation rate [95% CI], cumulative violations.
-
-    :param entries: summary dicts
-    :return: the table
-    """
-    lines = [f"{'k':>3} {'return':>20} {'CVaR10%':>10} {'viol. rate':>10} {'95% CI':>15} {'cum. viol.':>10}"]
-    for e in entries:
-        ret = f"{e['return_mean']:.2f} +- {e['return_std']:.2f}"
-        ci = f"[{e['violation_ci_low']:.2f}, {e['violation_ci_high']:.2f}]"
-        rates = f"{e['violation_rate']:>10.2f} {ci:>15} {e['cum_violations']:>10.2f}"
-        lines.append(f"{e['k']:>3} {ret:>20} {e['return_cvar10']:>10.2f} {rates}")
-    return "\n".join(lines)
-
-
 # ----------------------------------------------------------------------------------------------
 # Rollouts
 # ----------------------------------------------------------------------------------------------
@@ -318,6 +197,20 @@ class _SingleEnv:
         else:
             self.env = env
         self._seed: int | None = None
+
+    def family_keys(self, name: str) -> tuple[str, ...]:
+        """
+        A tuple class attribute of the task family, e.g. ``trajectory_info_keys``; () when the env has none.
+
+        :param name: the attribute
+        :return: its value
+        """
+        if self.vec_env is not None:
+            if not self.vec_env.has_attr(name):
+                return ()
+            return tuple(self.vec_env.get_attr(name, indices=[0])[0])
+        assert self.env is not None
+        return tuple(getattr(self.env.unwrapped, name, ()))
 
     def seed(self, seed: int | None) -> None:
         self._seed = seed
@@ -360,7 +253,8 @@ def rollout(
     env: _SingleEnv,
     deterministic: bool = True,
     max_steps: int | None = None,
-    trace_keys: Sequence[str] = TRACE_INFO_KEYS,
+    trace_keys: Sequence[str] | None = None,
+    info_keys: Sequence[str] | None = None,
 ) -> tuple[dict[str, Any], dict[str, list[float]]]:
     """
     One trajectory with the model's current adaptation state; every transition goes to ``model.observe``.
@@ -369,9 +263,14 @@ def rollout(
     :param env: the env, already set to the task
     :param deterministic: deterministic actions
     :param max_steps: stop after this many steps (None: until the episode ends)
-    :param trace_keys: per-step info entries to keep
+    :param trace_keys: per-step info entries to keep (None: the family's ``step_trace_keys``)
+    :param info_keys: info entries recorded per trajectory, last value seen (None: the family's ``trajectory_info_keys``)
     :return: the row values (return, cost, length, violated, extras) and the traces
     """
+    if trace_keys is None:
+        trace_keys = env.family_keys(STEP_TRACE_KEYS_ATTR)
+    if info_keys is None:
+        info_keys = env.family_keys(TRAJECTORY_INFO_KEYS_ATTR)
     obs = env.reset()
     ret, cost, length = 0.0, 0.0, 0
     extras: dict[str, Any] = {}
@@ -385,7 +284,7 @@ def rollout(
         ret += reward
         cost += float(info.get("cost", 0.0))
         length += 1
-        for key in EXTRA_INFO_KEYS:
+        for key in info_keys:
             if key in info and info[key] is not None:
                 extras[key] = float(info[key])
         for key in trace_keys:
@@ -404,13 +303,14 @@ def meta_test(
     deterministic: bool = True,
     seed: int | None = None,
     max_steps: int | None = None,
-    trace_keys: Sequence[str] = TRACE_INFO_KEYS,
+    trace_keys: Sequence[str] | None = None,
     on_trajectory_start: Callable[[int, int, int], None] | None = None,
 ) -> MetaTestResult:
     """
     The meta-test protocol (module docstring) on ``tasks``.
 
     :param model: any object with ``reset_adaptation``, ``observe``, ``adapt`` and ``predict``
+        (:class:`~sb3_pearl.common.adaptation.AdaptiveModel`)
     :param env: a task-family env (gymnasium env, possibly wrapped, or a VecEnv of one env)
     :param tasks: the test tasks (e.g. ``model.test_tasks``, see :func:`get_test_tasks`)
     :param n_adapt: last trajectory index K: trajectories k = 0..K are rolled out per task
@@ -420,7 +320,7 @@ def meta_test(
         setting actually used is recorded in the result's config)
     :param seed: seed of the env's first reset (None: not seeded)
     :param max_steps: cap on trajectory length (None: the env's own horizon)
-    :param trace_keys: per-step info entries kept as traces
+    :param trace_keys: per-step info entries kept as traces (None: the family's ``step_trace_keys``)
     :param on_trajectory_start: called with (task index, repeat, k) before each trajectory's reset
         (e.g. to name a video file)
     :return: rows, summary, traces and the settings
@@ -434,6 +334,8 @@ def meta_test(
     # adapt on their own stochastic data say so with `stochastic_adaptation = True` and act stochastically.
     deterministic = deterministic and not getattr(model, "stochastic_adaptation", False)
     runner = _SingleEnv(env)
+    info_keys = runner.family_keys(TRAJECTORY_INFO_KEYS_ATTR)
+    trace_keys = runner.family_keys(STEP_TRACE_KEYS_ATTR) if trace_keys is None else tuple(trace_keys)
     runner.seed(seed)
     rows: list[dict[str, Any]] = []
     traces: list[dict[str, Any]] = []
@@ -446,7 +348,7 @@ def meta_test(
                     model.adapt()  # posterior from trajectories 0..k-1
                 if on_trajectory_start is not None:
                     on_trajectory_start(task_index, repeat, k)
-                values, trace = rollout(model, runner, deterministic, max_steps, trace_keys)
+                values, trace = rollout(model, runner, deterministic, max_steps, trace_keys, info_keys)
                 rows.append({"task": task_index, "repeat": repeat, "k": k, **values})
                 if trace:
                     traces.append({"task": task_index, "repeat": repeat, "k": k, **trace})
@@ -458,8 +360,11 @@ def meta_test(
         "seed": seed,
         "max_steps": max_steps,
         "algorithm": type(model).__name__,
+        TRAJECTORY_INFO_KEYS_ATTR: list(info_keys),
+        STEP_TRACE_KEYS_ATTR: list(trace_keys),
     }
-    return MetaTestResult(rows=rows, summary=summarize(rows), tasks=list(tasks), traces=traces, config=config)
+    summary = summarize(rows, extra_keys=info_keys)
+    return MetaTestResult(rows=rows, summary=summary, tasks=list(tasks), traces=traces, config=config)
 
 
 def get_test_tasks(
@@ -498,19 +403,12 @@ def get_test_tasks(
 
 
 __all__ = [
-    "EXTRA_INFO_KEYS",
     "PAPER_KS",
     "ROW_COLUMNS",
-    "SUMMARY_COLUMNS",
-    "TRACE_INFO_KEYS",
-    "AdaptiveModel",
+    "STEP_TRACE_KEYS_ATTR",
+    "TRAJECTORY_INFO_KEYS_ATTR",
     "MetaTestResult",
-    "check_adaptive",
-    "cvar",
-    "format_summary_table",
     "get_test_tasks",
     "meta_test",
     "rollout",
-    "summarize",
-    "wilson_interval",
 ]

@@ -1,0 +1,49 @@
+"""rl-zoo integration: the project's algorithms in ``rl_zoo3``, an ExperimentManager with the meta-test, and enjoy.
+
+``train.py`` and ``enjoy.py`` at the repository root are thin wrappers over this package:
+
+- :mod:`sb3_pearl.zoo.registry`: :func:`register_algos` (the algorithms in ``rl_zoo3.ALGOS``
+  and the PEARL / PEARL+ Optuna samplers), :func:`constructor_kwargs`;
+- :mod:`sb3_pearl.zoo.experiment_manager`: :class:`MetaExperimentManager` (rl_zoo3's
+  ``ExperimentManager`` with the project's hyperparameter files and the meta-test) and :func:`train`;
+- :mod:`sb3_pearl.zoo.replay`: :func:`enjoy`, prior and posterior rollouts of a trained model.
+"""
+
+from sb3_pearl.zoo.experiment_manager import (
+    HYPERPARAMS_DIR,
+    META_TEST_DEFAULTS,
+    ZOO_SPECIAL_KEYS,
+    MetaExperimentManager,
+    check_model_env,
+    check_model_spaces,
+    default_config,
+    train,
+    write_meta_test,
+)
+from sb3_pearl.zoo.registry import (
+    constructor_kwargs,
+    convert_pearl_params,
+    register_algos,
+    sample_pearl_params,
+    sample_pearlplus_params,
+)
+from sb3_pearl.zoo.replay import enjoy, enjoy_parser
+
+__all__ = [
+    "HYPERPARAMS_DIR",
+    "META_TEST_DEFAULTS",
+    "ZOO_SPECIAL_KEYS",
+    "MetaExperimentManager",
+    "check_model_env",
+    "check_model_spaces",
+    "constructor_kwargs",
+    "convert_pearl_params",
+    "default_config",
+    "enjoy",
+    "enjoy_parser",
+    "register_algos",
+    "sample_pearl_params",
+    "sample_pearlplus_params",
+    "train",
+    "write_meta_test",
+]

@@ -1,0 +1,213 @@
+"""``enjoy.py``: prior and posterior rollouts of a trained model, found like rl_zoo3's enjoy finds it.
+
+The prior trajectory (k = 0) of each test task, then posterior trajectories after adapting on the
+earlier ones (k = 1..``--n-adapt``), rendered, recorded as videos or only printed and plotted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import importlib
+import json
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import torch as th
+import yaml
+from gymnasium.envs.registration import load_env_creator
+from gymnasium.wrappers import HumanRendering, RecordVideo
+from huggingface_sb3 import EnvironmentName
+from rl_zoo3 import ALGOS, create_test_env, get_saved_hyperparams
+from rl_zoo3.utils import StoreDict, get_model_path
+from stable_baselines3.common.utils import set_random_seed
+
+from sb3_pearl.common.meta_test import ROW_COLUMNS, MetaTestResult, get_test_tasks, meta_test
+from sb3_pearl.zoo.experiment_manager import check_model_env, check_model_spaces
+from sb3_pearl.zoo.registry import register_algos
+
+
+def enjoy_parser() -> argparse.ArgumentParser:
+    """The command line of ``enjoy.py`` (rl_zoo3's model-finding flags plus the meta-test ones)."""
+    parser = argparse.ArgumentParser(
+        description="Roll out a trained meta-RL model on test tasks: the prior trajectory (k = 0), then posterior "
+        "trajectories after adapting on the earlier ones (k = 1..--n-adapt).",
+    )
+    parser.add_argument("--env", help="environment ID", type=EnvironmentName, default="SafePointGoalMeta-v0")
+    parser.add_argument("-f", "--folder", help="Log folder", type=str, default="logs")
+    parser.add_argument("--algo", help="RL Algorithm", default="pearlplus", type=str, choices=list(ALGOS.keys()))
+    parser.add_argument("--exp-id", help="Experiment ID (default: 0: latest, -1: no exp folder)", default=0, type=int)
+    parser.add_argument("--load-best", action="store_true", default=False, help="Load the best model (best_model.zip)")
+    parser.add_argument("--load-checkpoint", type=int, help="Load the checkpoint of this many timesteps")
+    parser.add_argument("--load-last-checkpoint", action="store_true", default=False, help="Load the last checkpoint")
+    parser.add_argument("--n-tasks", help="number of test tasks", default=3, type=int)
+    parser.add_argument("--n-adapt", help="last trajectory index K (k = 0 prior, 1..K posterior)", default=5, type=int)
+    parser.add_argument("--n-repeats", help="repeats of the sequence per task", default=1, type=int)
+    parser.add_argument(
+        "--sample-tasks",
+        action="store_true",
+        default=False,
+        help="draw --n-tasks tasks from the env (with --seed) instead of the model's saved test tasks "
+        "(implied by --env-kwargs: a shifted task distribution)",
+    )
+    parser.add_argument("--stochastic", action="store_true", default=False, help="Use stochastic actions")
+    parser.add_argument("--no-render", action="store_true", default=False, help="Do not render the environment")
+    parser.add_argument("--video-folder", type=str, default=None, help="Record one video per trajectory here")
+    parser.add_argument(
+        "--plot",
+        nargs="?",
+        const="",
+        default=None,
+        help="Save the adaptation curve (and, for the merge family, speed profiles and the b_min scatter); "
+        "optional PNG path (default: <run folder>/enjoy_adaptation.png)",
+    )
+    parser.add_argument("--seed", help="Random generator seed", type=int, default=0)
+    parser.add_argument("--device", help="PyTorch device to be use (ex: cpu, cuda...)", default="auto", type=str)
+    parser.add_argument("--num-threads", help="Number of threads for PyTorch (-1 to use default)", default=-1, type=int)
+    parser.add_argument("--verbose", help="Verbose mode (0: no output, 1: INFO)", default=1, type=int)
+    parser.add_argument(
+        "--gym-packages", type=str, nargs="+", default=[], help="Additional external Gym environment package modules to import"
+    )
+    parser.add_argument(
+        "--env-kwargs", type=str, nargs="+", action=StoreDict, help="Optional keyword argument to pass to the env constructor"
+    )
+    return parser
+
+
+def _render_modes(env_id: str) -> list[str]:
+    spec = gym.spec(env_id)
+    creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
+    return list(getattr(creator, "metadata", {}).get("render_modes", []))
+
+
+def _saved_env_kwargs(log_path: str, env_name: str, hyperparams: dict[str, Any]) -> dict[str, Any]:
+    """env kwargs of the training run: the config's, overridden by the command line's (rl_zoo3's enjoy rule)."""
+    env_kwargs: dict[str, Any] = dict(hyperparams.pop("env_kwargs", None) or {})
+    args_path = os.path.join(log_path, env_name, "args.yml")
+    if os.path.isfile(args_path):
+        with open(args_path) as file:
+            loaded = yaml.load(file, Loader=yaml.UnsafeLoader) or {}
+        if loaded.get("env_kwargs") is not None:
+            env_kwargs = dict(loaded["env_kwargs"])
+    return env_kwargs
+
+
+def format_task_table(result: MetaTestResult, task: int, repeat: int = 0) -> str:
+    """The rows of one task and repeat: k, prior / posterior, return, cost, length (and the family extras)."""
+    extras = [key for key in result.columns[len(ROW_COLUMNS) :]]
+    header = f"{'k':>3}  {'policy':<9} {'return':>10} {'cost':>6} {'length':>6}" + "".join(f" {key:>10}" for key in extras)
+    lines = [header]
+    for row in result.rows:
+        if row["task"] != task or row["repeat"] != repeat:
+            continue
+        policy = "prior" if row["k"] == 0 else "posterior"
+        line = f"{row['k']:>3}  {policy:<9} {row['return']:>10.2f} {row['cost']:>6.1f} {row['length']:>6d}"
+        line += "".join(f" {float(row.get(key, float('nan'))):>10.3g}" for key in extras)
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def enjoy(argv: Sequence[str] | None = None) -> MetaTestResult:
+    """
+    ``enjoy.py``: load a model like rl-zoo and roll out prior then posterior trajectories on test tasks.
+
+    :param argv: command-line arguments (default: ``sys.argv[1:]``)
+    :return: the meta-test of the rollouts
+    """
+    register_algos()
+    args = enjoy_parser().parse_args(argv)
+    for module in args.gym_packages:
+        importlib.import_module(module)
+    env_name: EnvironmentName = args.env
+    env_id = env_name.gym_id
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=1)
+        raise SystemExit(f"enjoy.py: {env_id} not found in gym registry" + (f", you maybe meant {close[0]}?" if close else ""))
+    try:
+        _, model_path, log_path = get_model_path(
+            args.exp_id, args.folder, args.algo, env_name, args.load_best, args.load_checkpoint, args.load_last_checkpoint
+        )
+    except (AssertionError, ValueError) as error:
+        raise SystemExit(f"enjoy.py: {error}") from None
+    if args.num_threads > 0:
+        th.set_num_threads(args.num_threads)
+    set_random_seed(args.seed)
+    try:
+        check_model_env(model_path, env_id)
+    except ValueError as error:
+        raise SystemExit(f"enjoy.py: {error}") from None
+    print(f"Loading {model_path}")
+
+    hyperparams, maybe_stats_path = get_saved_hyperparams(os.path.join(log_path, env_name), test_mode=True)
+    env_kwargs = _saved_env_kwargs(log_path, env_name, hyperparams)
+    shifted = bool(args.env_kwargs)
+    if args.env_kwargs:
+        env_kwargs.update(args.env_kwargs)
+    render = not args.no_render
+    if args.video_folder is not None:
+        env_kwargs["render_mode"] = "rgb_array"
+    elif render and "render_mode" not in env_kwargs:
+        env_kwargs["render_mode"] = "human" if "human" in _render_modes(env_id) else "rgb_array"
+    vec_env = create_test_env(
+        env_id,
+        n_envs=1,
+        stats_path=maybe_stats_path,
+        seed=args.seed,
+        should_render=False,
+        hyperparams=hyperparams,
+        env_kwargs=env_kwargs,
+    )
+    env: gym.Env = vec_env.envs[0]  # type: ignore[attr-defined]
+    if args.video_folder is not None:
+        env = RecordVideo(env, args.video_folder, episode_trigger=lambda _: True, disable_logger=True)
+    elif render and env_kwargs.get("render_mode") == "rgb_array":
+        env = HumanRendering(env)
+
+    model = ALGOS[args.algo].load(model_path, device=args.device)
+    try:
+        check_model_spaces(model, env, model_path, env_id)
+    except ValueError as error:
+        raise SystemExit(f"enjoy.py: {error}") from None
+    tasks = get_test_tasks(model, env, args.n_tasks, args.seed, sample=args.sample_tasks or shifted)
+    source = "sampled from the env" if (args.sample_tasks or shifted or not getattr(model, "test_tasks", None)) else "saved"
+    print(f"{len(tasks)} test tasks ({source}), trajectories k = 0 (prior) .. {args.n_adapt} (posterior)")
+
+    def name_video(task: int, repeat: int, k: int) -> None:
+        if isinstance(env, RecordVideo):
+            phase = "prior" if k == 0 else "posterior"
+            env.name_prefix = f"{args.algo}-{env_id}-task{task}-rep{repeat}-k{k}-{phase}"
+
+    try:
+        result = meta_test(
+            model,
+            env,
+            tasks,
+            n_adapt=args.n_adapt,
+            n_repeats=args.n_repeats,
+            deterministic=not args.stochastic,
+            seed=args.seed,
+            on_trajectory_start=name_video,
+        )
+    finally:
+        env.close()
+    result.config.update(algo=args.algo, env_id=env_id, model_path=model_path)
+    for task_index, task in enumerate(result.tasks):
+        for repeat in range(args.n_repeats):
+            print(f"\nTask {task_index} (repeat {repeat}): {json.dumps(task)}")
+            print(format_task_table(result, task_index, repeat))
+    print("\nSummary over tasks")
+    print(result.format_summary())
+    if args.video_folder is not None:
+        print(f"Videos in {args.video_folder}")
+    if args.plot is not None:
+        from sb3_pearl.plots import plot_all
+
+        output = args.plot or os.path.join(log_path, "enjoy_adaptation.png")
+        for path in plot_all({args.algo: result}, output, title=f"{args.algo} on {env_id}"):
+            print(f"Saved {path}")
+    return result
+
+
+__all__ = ["enjoy", "enjoy_parser", "format_task_table"]
