@@ -1,1 +1,2 @@
-"""Code shared by the algorithms: buffers, context inference, evaluation, type aliases."""
+"""Code shared by the algorithms: networks, buffers, context inference, task helpers, the adaptation protocol,
+the meta-test and its statistics."""

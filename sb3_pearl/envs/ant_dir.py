@@ -11,7 +11,7 @@ unhealthy pose (torso height outside [0.2, 1.0]) with ``info["cost"] = 1.0`` on 
 
 Tasks, train versus test. PEARL's Ant-Fwd-Back has two tasks, theta in {0, pi}; its reference
 code trained on two *random* directions instead, and its train tasks equal its test tasks
-(REFERENCE.md, known defects), so meta-test never sees a new task. Here a task is
+(docs/references.md, known defects), so meta-test never sees a new task. Here a task is
 ``{"direction": theta}`` with ``theta = b + U[-direction_spread, direction_spread]`` (wrapped to
 [0, 2 pi)), ``b`` one of ``base_directions`` = (0, pi): still "forward or backward" (the hard part,
 which one, is unchanged) but a continuum, so test tasks drawn with another seed are directions never

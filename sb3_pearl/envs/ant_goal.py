@@ -2,13 +2,13 @@
 
 Gymnasium's ``Ant-v5`` (model, health check, healthy reward, control and contact costs,
 ``frame_skip=5``, dt = 0.05 s, reused through subclassing) with the forward reward replaced by
-PEARL's goal term, the negative L1 distance of the torso to the goal (REFERENCE.md):
+PEARL's goal term, the negative L1 distance of the torso to the goal (docs/references.md):
 
 ``reward = -(|x - g_x| + |y - g_y|) + healthy_reward - 0.5 |a|^2 - 5e-4 |clip(cfrc_ext, -1, 1)|^2``
 
 The episode terminates on an unhealthy pose (torso height outside [0.2, 1.0]) with
-``info["cost"] = 1.0`` on that step only (DESIGN.md: the ant families' safety is the unhealthy pose;
-PEARL's ant-goal never terminated).
+``info["cost"] = 1.0`` on that step only (docs/envs.md: the ant families' safety is the unhealthy pose;
+PEARL's ant-goal never terminated, docs/references.md).
 
 Choices and where they come from:
 

@@ -2,7 +2,7 @@
 
 Gymnasium's ``HalfCheetah-v5`` (model, observation, ``frame_skip=5``, dt = 0.05 s, reused through
 subclassing) with the forward reward replaced by PEARL's velocity-tracking reward
-(REFERENCE.md, Rakelly et al. 2019, itself MAML's goal-velocity cheetah):
+(Rakelly et al. 2019, itself MAML's goal-velocity cheetah; docs/references.md):
 
 ``reward = -|v - v*| - 0.05 * |a|^2`` (``ctrl_cost_weight = 0.05`` instead of Gymnasium's 0.1).
 

@@ -1,4 +1,4 @@
-"""``PointGoalMeta-v0``: the reference point robot of PEARL (REFERENCE.md).
+"""``PointGoalMeta-v0``: the reference point robot of PEARL (docs/references.md).
 
 A 2-D point starting at the origin, actions in [-0.1, 0.1]^2 added to its position (clipped to
 [-2, 2]^2), reward ``-||s - g||``, goal U[-1, 1]^2 (task ``{"goal": [x, y]}``), horizon 20.

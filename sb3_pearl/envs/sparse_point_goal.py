@@ -1,7 +1,7 @@
 """``SparsePointGoalMeta-v0``: PEARL's sparse point robot.
 
 The point robot of ``PointGoalMeta-v0`` (start at the origin, actions in [-0.1, 0.1]^2 added to the
-position, horizon 20) with PEARL's sparse variant of the task (REFERENCE.md, Rakelly et al. 2019):
+position, horizon 20) with PEARL's sparse variant of the task (Rakelly et al. 2019, docs/references.md):
 goals on the upper half of the unit circle, and a reward only within ``reward_radius = 0.2`` of the
 goal,
 

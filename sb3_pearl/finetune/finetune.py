@@ -1,4 +1,4 @@
-"""Fine-Tune: the paper's baseline without task inference (REFERENCE.md, "Baselines").
+"""Fine-Tune: the paper's baseline without task inference (docs/references.md, "Baselines").
 
 Meta-training trains one soft actor-critic policy on the mixture of the training tasks (a
 uniformly drawn training task per episode). At meta-test the policy is fine-tuned on the new
@@ -46,7 +46,7 @@ class FineTune(DiscreteSAC):
     every episode of every env runs a training task drawn uniformly from :attr:`train_tasks`. The
     policy sees no task information (no task inference).
 
-    Adaptation API (shared with PEARL / PEARL+ / MAML, ``DESIGN.md``):
+    Adaptation API (shared with PEARL / PEARL+ / MAML, ``docs/design.md``):
 
     - :meth:`reset_adaptation`: drop the fine-tuned copy and the new task's buffer; :meth:`predict`
       acts with the pretrained policy again (k = 0);
