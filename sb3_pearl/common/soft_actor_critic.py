@@ -78,8 +78,17 @@ def entropy_log_prob(pe: PolicyEval) -> th.Tensor:
     return (pe.probs * pe.log_prob).sum(dim=-1, keepdim=True)
 
 
-def critic_regression_loss(q: th.Tensor, target: th.Tensor) -> th.Tensor:
-    """0.5 * sum over critics of the mean squared Bellman error; ``q`` (n_critics, N, 1), ``target`` (N, 1)."""
+def critic_regression_loss(q: th.Tensor, target: th.Tensor, coef: float = 1.0) -> th.Tensor:
+    """
+    ``coef`` * sum over critics of the mean squared Bellman error.
+
+    PEARL uses ``coef=1`` (the reference sums plain MSEs, which sets the critic/KL balance of the
+    encoder); SB3's SAC, and so the discrete SAC of Fine-Tune, uses 0.5.
+
+    :param q: Q values (n_critics, N, 1)
+    :param target: Bellman targets (N, 1)
+    :param coef: factor on the sum
+    """
     if q.dim() != 3 or target.shape != q.shape[1:]:
         raise ValueError(f"expected q (n_critics, N, 1) and target (N, 1), got {tuple(q.shape)} and {tuple(target.shape)}")
-    return 0.5 * (q - target.unsqueeze(0)).pow(2).mean(dim=(1, 2)).sum()
+    return coef * (q - target.unsqueeze(0)).pow(2).mean(dim=(1, 2)).sum()

@@ -5,7 +5,7 @@ Discrete action spaces use a categorical actor and critics with one Q value per 
 the soft state value and the actor loss are exact expectations over actions (Christodoulou 2019,
 "Soft Actor-Critic for Discrete Action Settings"). The math is the project's
 (:mod:`sb3_pearl.common.soft_actor_critic`) and the networks are PEARL's
-(:class:`~sb3_pearl.pearl.policies.CategoricalActor`, :class:`~sb3_pearl.pearl.policies.LatentCritic`)
+(:class:`~sb3_pearl.common.networks.CategoricalActor`, :class:`~sb3_pearl.common.networks.LatentCritic`)
 used without a latent input.
 """
 
@@ -291,7 +291,9 @@ class DiscreteSAC(SAC):
                 next_v = soft_value(q_of_policy(critic_target, next_obs, next_pe), next_pe, ent_coef)
                 target_q = replay_data.rewards + (1 - replay_data.dones) * discounts * next_v
 
-            critic_loss = critic_regression_loss(q_of_actions(critic, obs, replay_data.actions, discrete=True), target_q)
+            critic_loss = critic_regression_loss(
+                q_of_actions(critic, obs, replay_data.actions, discrete=True), target_q, coef=0.5
+            )
             critic_losses.append(critic_loss.item())
             critic.optimizer.zero_grad()
             critic_loss.backward()

@@ -81,11 +81,14 @@ class PEARL(OffPolicyAlgorithm):
     :param kl_weight: weight ``beta`` of KL(q(z|c) || N(0, I)), summed over the meta-batch tasks
     :param use_next_obs_in_context: context transitions are (s, a, r, s') instead of (s, a, r)
     :param encoder_arch: hidden sizes of the context encoder
-    :param ent_coef: ``"auto"`` / ``"auto_<init>"`` (learned, SB3 default) or a float (the reference
-        uses 1.0 with ``reward_scale=5``)
+    :param ent_coef: a fixed entropy coefficient (default 1.0, the reference's, with ``reward_scale=5``)
+        or ``"auto"`` / ``"auto_<init>"`` (learned, SB3's rule). The default is the setting measured to
+        make the encoder learn: with ``"auto"`` and ``reward_scale=1`` the posterior collapses to the
+        prior (docs/pearl.md)
     :param target_entropy: target of the learned entropy coefficient; ``"auto"`` is ``-dim(A)`` for
         Box and ``0.6 * log(n_actions)`` for Discrete
-    :param reward_scale: rewards are multiplied by this in the critic targets (not in the context)
+    :param reward_scale: rewards are multiplied by this in the critic targets (not in the context);
+        default 5 (the reference's; it sets the critic loss's weight against ``kl_weight``)
     :param n_train_tasks: training tasks drawn from ``env.sample_tasks`` with the model seed
     :param n_test_tasks: held-out test tasks drawn in the same call
     :param train_tasks: explicit training tasks (overrides the draw)
@@ -130,9 +133,9 @@ class PEARL(OffPolicyAlgorithm):
         kl_weight: float = 0.1,
         use_next_obs_in_context: bool = False,
         encoder_arch: list[int] | None = None,
-        ent_coef: str | float = "auto",
+        ent_coef: str | float = 1.0,
         target_entropy: str | float = "auto",
-        reward_scale: float = 1.0,
+        reward_scale: float = 5.0,
         n_train_tasks: int = 100,
         n_test_tasks: int = 30,
         train_tasks: list[Task] | None = None,
