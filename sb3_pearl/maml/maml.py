@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any, ClassVar, NamedTuple, TypeVar
+from functools import partial
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
@@ -30,76 +31,17 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import safe_mean
-from torch.nn.utils import parameters_to_vector, vector_to_parameters
+from torch.nn.utils import parameters_to_vector
 
-from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.maml.advantages import compute_advantages, split_task_samples
 from sb3_pearl.maml.policies import MAMLPolicy, MlpPolicy, Params
+from sb3_pearl.maml.sampling import Episode, act_store_dim, collect_episodes, episodes_to_batch, observed_action
+from sb3_pearl.maml.trpo import conjugate_gradient, fisher_vector_product, line_search
+from sb3_pearl.maml.type_aliases import EpisodeBatch, OldPolicy, TaskSamples, TRPOInfo
 
 SelfMAML = TypeVar("SelfMAML", bound="MAML")
-
-
-class EpisodeBatch(NamedTuple):
-    """Trajectories of ``T`` tasks, ``E`` episodes each, padded to ``H`` steps (numpy arrays)."""
-
-    observations: np.ndarray  # (T, E, H, obs_dim) float32
-    actions: np.ndarray  # (T, E, H, act_dim) raw normalised Box actions, or (T, E, H, 1) Discrete indices
-    rewards: np.ndarray  # (T, E, H) float32, 0 after the end of an episode
-    lengths: np.ndarray  # (T, E) int64, steps of each episode
-
-
-class TaskSamples(NamedTuple):
-    """The valid steps of one task's trajectories, flattened, as tensors for the losses."""
-
-    observations: th.Tensor  # (N, obs_dim)
-    actions: th.Tensor  # (N, act_dim) float for Box, (N,) long for Discrete
-    advantages: th.Tensor  # (N,)
-
-
-class OldPolicy(NamedTuple):
-    """The sampling (adapted) policy on one task's post-adaptation data, detached."""
-
-    log_prob: th.Tensor  # (N,)
-    distribution: th.distributions.Distribution  # batch shape (N,)
-
-
-class TRPOInfo(NamedTuple):
-    """Outcome of one TRPO meta-update."""
-
-    surrogate_before: float
-    surrogate_after: float
-    kl: float  # mean KL(old || new) after the step (0 if rejected)
-    step_size: float  # multiplier of the CG direction that was applied (0 if rejected)
-    n_backtracks: int
-    accepted: bool
-
-
-def conjugate_gradient(fvp: Any, b: th.Tensor, n_iters: int = 10, residual_tol: float = 1e-10) -> th.Tensor:
-    """
-    Solve ``F x = b`` for a symmetric positive definite ``F`` given only as a product ``fvp(v) = F v``.
-
-    :param fvp: function returning ``F v``
-    :param b: right-hand side, shape ``(P,)``
-    :param n_iters: maximum number of iterations
-    :param residual_tol: stop when the squared residual norm falls below this
-    :return: the approximate solution, shape ``(P,)``
-    """
-    x = th.zeros_like(b)
-    r = b.clone()
-    p = b.clone()
-    r_dot = r @ r
-    for _ in range(n_iters):
-        fp = fvp(p)
-        alpha = r_dot / (p @ fp + 1e-12)
-        x = x + alpha * p
-        r = r - alpha * fp
-        new_r_dot = r @ r
-        if new_r_dot < residual_tol:
-            break
-        p = r + (new_r_dot / r_dot) * p
-        r_dot = new_r_dot
-    return x
 
 
 class MAML(BaseAlgorithm):
@@ -221,8 +163,8 @@ class MAML(BaseAlgorithm):
         self.test_tasks: list[Task] = list(test_tasks) if test_tasks is not None else []
         self._task_rng: np.random.Generator | None = None
         # Adaptation state (meta-test): never saved
-        self._adapt_episodes: list[tuple[list[np.ndarray], list[np.ndarray], list[float]]] = []
-        self._current_episode: tuple[list[np.ndarray], list[np.ndarray], list[float]] = ([], [], [])
+        self._adapt_episodes: list[Episode] = []
+        self._current_episode: Episode = ([], [], [])
 
         if self.env is not None:
             self._check_env(self.env)
@@ -263,204 +205,36 @@ class MAML(BaseAlgorithm):
         return ["policy"], []
 
     # ------------------------------------------------------------------------------------------
-    # sampling
+    # sampling and advantages (sampling.py, advantages.py)
     # ------------------------------------------------------------------------------------------
-    @property
-    def _act_store_dim(self) -> int:
-        return self.policy.action_dim if self.policy.continuous else 1
-
-    def _env_actions(self, raw: th.Tensor) -> np.ndarray:
-        """Raw policy samples -> actions for the env (Box: clip to [-1, 1] and rescale to the box)."""
-        if self.policy.continuous:
-            return self.policy.unscale_action(raw.clamp(-1.0, 1.0).cpu().numpy())
-        return raw.cpu().numpy()
-
-    def _reset_one(self, env_idx: int) -> np.ndarray:
-        assert self.env is not None
-        obs = self.env.env_method("reset", indices=[env_idx])[0][0]
-        return np.asarray(obs, dtype=np.float32)
-
     def _collect_episodes(
         self, tasks: list[Task], params: Params | None, callback: BaseCallback | None = None
     ) -> tuple[EpisodeBatch, bool]:
-        """
-        Roll out ``episodes_per_task`` trajectories on each task, spreading them over the envs.
-
-        Each env keeps running episodes of its current task (the task sticks across auto-resets) and
-        switches (``set_task`` then an explicit reset) only when that task has no episode left.
-
-        :param tasks: the ``T`` tasks
-        :param params: per-task parameters (every tensor with leading dimension ``T``), or None for ``theta``
-        :param callback: called once per VecEnv step; None during tests
-        :return: the padded episodes and whether training should continue (callback result)
-        """
-        assert self.env is not None and self.max_episode_steps is not None
-        env = self.env
-        n_envs = env.num_envs
-        n_tasks, n_eps, horizon = len(tasks), self.episodes_per_task, self.max_episode_steps
-        obs_dim = self.policy.obs_dim
-        observations = np.zeros((n_tasks, n_eps, horizon, obs_dim), dtype=np.float32)
-        actions = np.zeros((n_tasks, n_eps, horizon, self._act_store_dim), dtype=np.float32)
-        rewards = np.zeros((n_tasks, n_eps, horizon), dtype=np.float32)
-        lengths = np.zeros((n_tasks, n_eps), dtype=np.int64)
-
-        next_episode = np.zeros(n_tasks, dtype=np.int64)  # next unassigned episode of each task
-        env_slot: list[tuple[int, int] | None] = [None] * n_envs  # (task, episode) run by each env
-        env_t = np.zeros(n_envs, dtype=np.int64)
-
-        def pick_task(preferred: int | None) -> int | None:
-            if preferred is not None and next_episode[preferred] < n_eps:
-                return preferred
-            busy = {slot[0] for slot in env_slot if slot is not None}
-            remaining = n_eps - next_episode
-            candidates = [j for j in range(n_tasks) if remaining[j] > 0]
-            if not candidates:
-                return None
-            # a task nobody runs first, then the one with most episodes left
-            return max(candidates, key=lambda j: (j not in busy, remaining[j]))
-
-        # Initial assignment: one task per env, applied by a reset of all envs.
-        for i in range(n_envs):
-            task_idx = pick_task(None)
-            if task_idx is None:
-                break
-            env_slot[i] = (task_idx, int(next_episode[task_idx]))
-            next_episode[task_idx] += 1
-            env.env_method("set_task", tasks[task_idx], indices=[i])
-        obs = np.asarray(env.reset(), dtype=np.float32).reshape(n_envs, obs_dim)
-
-        continue_training = True
-        while any(slot is not None for slot in env_slot):
-            active = [i for i in range(n_envs) if env_slot[i] is not None]
-            with th.no_grad():
-                obs_t = th.as_tensor(obs, device=self.device)
-                if params is None:
-                    raw = self.policy.sample(obs_t)
-                else:
-                    task_of_env = th.as_tensor([slot[0] if slot is not None else 0 for slot in env_slot], device=self.device)
-                    env_params = {name: value[task_of_env] for name, value in params.items()}
-                    raw = self.policy.batched_distribution(obs_t.unsqueeze(1), env_params).sample().squeeze(1)
-            new_obs, step_rewards, dones, infos = env.step(self._env_actions(raw))
-            new_obs = np.asarray(new_obs, dtype=np.float32).reshape(n_envs, obs_dim)
-            raw_np = raw.cpu().numpy().reshape(n_envs, -1)
-
-            for i in active:
-                slot = env_slot[i]
-                assert slot is not None
-                task_idx, ep_idx = slot
-                t = env_t[i]
-                observations[task_idx, ep_idx, t] = obs[i]
-                actions[task_idx, ep_idx, t] = raw_np[i]
-                rewards[task_idx, ep_idx, t] = step_rewards[i]
-                env_t[i] += 1
-                if not (dones[i] or env_t[i] >= horizon):
-                    continue
-                lengths[task_idx, ep_idx] = env_t[i]
-                env_t[i] = 0
-                next_task = pick_task(task_idx)
-                if next_task is None:
-                    env_slot[i] = None
-                    continue
-                env_slot[i] = (next_task, int(next_episode[next_task]))
-                next_episode[next_task] += 1
-                if next_task != task_idx:
-                    env.env_method("set_task", tasks[next_task], indices=[i])
-                    new_obs[i] = self._reset_one(i)
-                elif not dones[i]:  # cut at max_episode_steps before the env's own limit
-                    new_obs[i] = self._reset_one(i)
-                # else: the VecEnv auto-reset already started a new episode of the same (sticky) task
-            obs = new_obs
-
-            self.num_timesteps += len(active)
-            if callback is not None:
-                callback.update_locals(locals())
-                if not callback.on_step():
-                    continue_training = False
-                    break
-        return EpisodeBatch(observations, actions, rewards, lengths), continue_training
-
-    # ------------------------------------------------------------------------------------------
-    # advantages
-    # ------------------------------------------------------------------------------------------
-    def _baseline_features(self, observations: th.Tensor) -> th.Tensor:
-        """
-        Features of the linear baseline: ``[o, o^2, t, t^2, t^3, 1]`` with ``t`` = step / horizon.
-
-        :param observations: shape ``(T, E, H, obs_dim)``
-        :return: shape ``(T, E, H, 2 * obs_dim + 4)``, float64
-        """
-        obs = observations.double().clamp(-10.0, 10.0)
-        n_tasks, n_eps, horizon, _ = obs.shape
-        scale = float(self.max_episode_steps or horizon)
-        time_ = (th.arange(horizon, dtype=th.float64, device=obs.device) / scale).view(1, 1, horizon, 1)
-        time_ = time_.expand(n_tasks, n_eps, horizon, 1)
-        return th.cat([obs, obs**2, time_, time_**2, time_**3, th.ones_like(time_)], dim=-1)
+        """Roll out ``episodes_per_task`` trajectories per task: :func:`sb3_pearl.maml.sampling.collect_episodes`."""
+        return collect_episodes(self, tasks, params, callback)
 
     def compute_advantages(self, batch: EpisodeBatch) -> th.Tensor:
         """
-        GAE advantages over a linear feature baseline fitted per task by ridge least squares on the
-        discounted returns (episodes end at their last step: no bootstrap, a finite-horizon objective).
+        GAE advantages over the linear feature baseline with this model's settings
+        (see :func:`sb3_pearl.maml.advantages.compute_advantages`).
 
         :param batch: the episodes
         :return: advantages, shape ``(T, E, H)``, 0 after the end of each episode; standardised per task
             over its valid steps if ``normalize_advantage``
         """
-        rewards = th.as_tensor(batch.rewards, dtype=th.float64, device=self.device)  # (T, E, H)
-        n_tasks, n_eps, horizon = rewards.shape
-        steps = th.arange(horizon, device=self.device).view(1, 1, horizon)
-        mask = (steps < th.as_tensor(batch.lengths, device=self.device).unsqueeze(-1)).double()  # (T, E, H)
-        rewards = rewards * mask
-
-        returns = th.zeros_like(rewards)
-        running = th.zeros_like(rewards[..., 0])
-        for t in reversed(range(horizon)):
-            running = rewards[..., t] + self.gamma * running
-            returns[..., t] = running
-        returns = returns * mask
-
-        features = self._baseline_features(th.as_tensor(batch.observations, device=self.device))  # (T, E, H, F)
-        x = (features * mask.unsqueeze(-1)).reshape(n_tasks, n_eps * horizon, -1)  # (T, N, F)
-        y = returns.reshape(n_tasks, n_eps * horizon, 1)  # (T, N, 1)
-        xtx = x.transpose(1, 2) @ x  # (T, F, F)
-        xty = x.transpose(1, 2) @ y  # (T, F, 1)
-        eye = th.eye(xtx.shape[-1], dtype=xtx.dtype, device=self.device)
-        reg = self.baseline_reg
-        for _ in range(5):
-            coeffs = th.linalg.lstsq(xtx + reg * eye, xty).solution  # (T, F, 1)
-            if th.isfinite(coeffs).all():
-                break
-            reg *= 10
-        values = (features @ coeffs.unsqueeze(1)).squeeze(-1) * mask  # (T, E, H)
-
-        advantages = th.zeros_like(rewards)
-        last = th.zeros_like(rewards[..., 0])
-        next_value = th.zeros_like(rewards[..., 0])
-        for t in reversed(range(horizon)):
-            delta = rewards[..., t] + self.gamma * next_value - values[..., t]
-            last = (delta + self.gamma * self.gae_lambda * last) * mask[..., t]
-            advantages[..., t] = last
-            next_value = values[..., t]
-        if self.normalize_advantage:
-            count = mask.sum(dim=(1, 2), keepdim=True).clamp(min=1)
-            mean = advantages.sum(dim=(1, 2), keepdim=True) / count
-            var = (((advantages - mean) * mask) ** 2).sum(dim=(1, 2), keepdim=True) / count
-            advantages = (advantages - mean) / (var.sqrt() + 1e-8) * mask
-        return advantages.float()
+        return compute_advantages(
+            batch,
+            self.gamma,
+            self.gae_lambda,
+            self.baseline_reg,
+            self.normalize_advantage,
+            self.max_episode_steps,
+            self.device,
+        )
 
     def _task_samples(self, batch: EpisodeBatch) -> list[TaskSamples]:
         """Advantages for ``batch`` and the valid steps of each task as tensors."""
-        advantages = self.compute_advantages(batch)  # (T, E, H)
-        n_tasks, _, horizon = batch.rewards.shape
-        valid = np.arange(horizon)[None, None, :] < batch.lengths[..., None]  # (T, E, H)
-        samples = []
-        for j in range(n_tasks):
-            keep = th.as_tensor(valid[j].reshape(-1), device=self.device)
-            obs = th.as_tensor(batch.observations[j], device=self.device).reshape(-1, self.policy.obs_dim)[keep]
-            act = th.as_tensor(batch.actions[j], device=self.device).reshape(-1, self._act_store_dim)[keep]
-            if not self.policy.continuous:
-                act = act.reshape(-1).long()
-            samples.append(TaskSamples(obs, act, advantages[j].reshape(-1)[keep]))
-        return samples
+        return split_task_samples(batch, self.compute_advantages(batch), self.policy, self.device)
 
     # ------------------------------------------------------------------------------------------
     # inner loop
@@ -559,36 +333,22 @@ class MAML(BaseAlgorithm):
         grad = parameters_to_vector(th.autograd.grad(surrogate, values, retain_graph=True))
         grad_kl = parameters_to_vector(th.autograd.grad(kl, values, create_graph=True))
 
-        def fisher_vector_product(vector: th.Tensor) -> th.Tensor:
-            hvp = th.autograd.grad(grad_kl @ vector, values, retain_graph=True)
-            return parameters_to_vector(hvp).detach() + self.cg_damping * vector
-
-        direction = conjugate_gradient(fisher_vector_product, grad.detach(), self.cg_iters)
-        shs = float(direction @ fisher_vector_product(direction))
+        fvp = partial(fisher_vector_product, grad_kl, values, damping=self.cg_damping)
+        direction = conjugate_gradient(fvp, grad.detach(), self.cg_iters)
+        shs = float(direction @ fvp(direction))
         surrogate_before = float(surrogate.detach())
-        theta_old = parameters_to_vector(values).detach()
         if not np.isfinite(shs) or shs <= 0:
             return TRPOInfo(surrogate_before, surrogate_before, 0.0, 0.0, 0, False)
-        full_step = np.sqrt(2.0 * self.max_kl / shs) * direction
-
-        for n_backtracks in range(self.ls_max_steps):
-            fraction = self.ls_backtrack_ratio**n_backtracks
-            candidate = theta_old + fraction * full_step
-            vector_to_parameters(candidate, values)
-            with th.enable_grad():
-                new_surrogate, new_kl = self.meta_objective(params, pre, post, old, create_graph=False)
-            new_surrogate, new_kl = new_surrogate.detach(), new_kl.detach()
-            if float(new_surrogate) > surrogate_before and float(new_kl) <= self.max_kl:
-                return TRPOInfo(
-                    surrogate_before,
-                    float(new_surrogate),
-                    float(new_kl),
-                    float(fraction * np.sqrt(2.0 * self.max_kl / shs)),
-                    n_backtracks,
-                    True,
-                )
-        vector_to_parameters(theta_old, values)
-        return TRPOInfo(surrogate_before, surrogate_before, 0.0, 0.0, self.ls_max_steps, False)
+        return line_search(
+            lambda: self.meta_objective(params, pre, post, old, create_graph=False),
+            values,
+            direction,
+            shs,
+            surrogate_before,
+            self.max_kl,
+            self.ls_backtrack_ratio,
+            self.ls_max_steps,
+        )
 
     # ------------------------------------------------------------------------------------------
     # training loop
@@ -705,16 +465,7 @@ class MAML(BaseAlgorithm):
         obs_flat = np.asarray(obs, dtype=np.float32).reshape(-1)
         if obs_flat.shape[0] != self.policy.obs_dim:
             raise ValueError(f"observe: expected one observation of size {self.policy.obs_dim}, got shape {np.shape(obs)}")
-        stored = stored_action(self.action_space, action)
-        if self.policy.continuous:
-            scaled = stored
-            raw = self.policy.last_raw_actions
-            # Recover the unclipped sample behind the (clipped) env action when it is the one predict() returned.
-            if raw is not None and raw.shape[0] == 1:
-                raw_np = raw.cpu().numpy().reshape(-1)
-                if np.allclose(np.clip(raw_np, -1.0, 1.0), scaled, atol=1e-5):
-                    scaled = raw_np
-            stored = np.asarray(scaled, dtype=np.float32).reshape(-1)
+        stored = observed_action(self.policy, self.action_space, action)
         observations, actions, rewards = self._current_episode
         observations.append(obs_flat)
         actions.append(stored)
@@ -735,18 +486,7 @@ class MAML(BaseAlgorithm):
         if not episodes:
             self.policy.adapted_params = None
             return
-        horizon = max(len(ep[2]) for ep in episodes)
-        n_eps = len(episodes)
-        observations = np.zeros((1, n_eps, horizon, self.policy.obs_dim), dtype=np.float32)
-        actions = np.zeros((1, n_eps, horizon, self._act_store_dim), dtype=np.float32)
-        rewards = np.zeros((1, n_eps, horizon), dtype=np.float32)
-        lengths = np.zeros((1, n_eps), dtype=np.int64)
-        for e, (ep_obs, ep_actions, ep_rewards) in enumerate(episodes):
-            n = len(ep_rewards)
-            observations[0, e, :n] = np.stack(ep_obs)
-            actions[0, e, :n] = np.stack(ep_actions)
-            rewards[0, e, :n] = ep_rewards
-            lengths[0, e] = n
-        samples = self._task_samples(EpisodeBatch(observations, actions, rewards, lengths))
+        batch = episodes_to_batch(episodes, self.policy.obs_dim, act_store_dim(self.policy))
+        samples = self._task_samples(batch)
         adapted = self._adapt_all(samples)
         self.policy.adapted_params = {name: value[0] for name, value in adapted.items()}
