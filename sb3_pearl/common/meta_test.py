@@ -33,6 +33,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from sb3_pearl.common.adaptation import AdaptiveModel, check_adaptive
+from sb3_pearl.common.seeding import derived_seed, get_global_rng_state, seed_global_rngs, set_global_rng_state
 from sb3_pearl.common.statistics import format_summary_table, summarize
 from sb3_pearl.envs.task_protocol import Task
 
@@ -305,6 +306,7 @@ def meta_test(
     max_steps: int | None = None,
     trace_keys: Sequence[str] | None = None,
     on_trajectory_start: Callable[[int, int, int], None] | None = None,
+    crn_seed: int | None = None,
 ) -> MetaTestResult:
     """
     The meta-test protocol (module docstring) on ``tasks``.
@@ -323,6 +325,11 @@ def meta_test(
     :param trace_keys: per-step info entries kept as traces (None: the family's ``step_trace_keys``)
     :param on_trajectory_start: called with (task index, repeat, k) before each trajectory's reset
         (e.g. to name a video file)
+    :param crn_seed: common random numbers across models: before each (task, repeat) sequence numpy's
+        and torch's global RNGs are seeded from (crn_seed, task index, repeat), so the prior z of
+        ``reset_adaptation()`` and the posterior samples are drawn from the same numbers for every
+        model of the same latent size; every trajectory's reset is seeded from (crn_seed, task index,
+        repeat, k) (instead of ``seed``). The global RNG states are restored afterwards. None: off
     :return: rows, summary, traces and the settings
     """
     check_adaptive(model)
@@ -339,19 +346,26 @@ def meta_test(
     runner.seed(seed)
     rows: list[dict[str, Any]] = []
     traces: list[dict[str, Any]] = []
+    saved_rng = get_global_rng_state() if crn_seed is not None else None
     for task_index, task in enumerate(tasks):
         runner.set_task(task)
         for repeat in range(n_repeats):
+            if crn_seed is not None:
+                seed_global_rngs(crn_seed, task_index, repeat)
             model.reset_adaptation()
             for k in range(n_adapt + 1):
                 if k > 0:
                     model.adapt()  # posterior from trajectories 0..k-1
                 if on_trajectory_start is not None:
                     on_trajectory_start(task_index, repeat, k)
+                if crn_seed is not None:
+                    runner.seed(derived_seed(crn_seed, task_index, repeat, k))
                 values, trace = rollout(model, runner, deterministic, max_steps, trace_keys, info_keys)
                 rows.append({"task": task_index, "repeat": repeat, "k": k, **values})
                 if trace:
                     traces.append({"task": task_index, "repeat": repeat, "k": k, **trace})
+    if saved_rng is not None:
+        set_global_rng_state(saved_rng)
     config = {
         "n_tasks": len(tasks),
         "n_adapt": n_adapt,
@@ -362,6 +376,7 @@ def meta_test(
         "algorithm": type(model).__name__,
         TRAJECTORY_INFO_KEYS_ATTR: list(info_keys),
         STEP_TRACE_KEYS_ATTR: list(trace_keys),
+        "crn_seed": crn_seed,
     }
     summary = summarize(rows, extra_keys=info_keys)
     return MetaTestResult(rows=rows, summary=summary, tasks=list(tasks), traces=traces, config=config)

@@ -24,6 +24,7 @@ from stable_baselines3.common.utils import polyak_update
 from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.context import kl_to_standard_normal
+from sb3_pearl.common.diagnostics import record_gradient_conflict
 from sb3_pearl.common.soft_actor_critic import (
     critic_regression_loss,
     entropy_log_prob,
@@ -104,6 +105,9 @@ class PEARL(OffPolicyAlgorithm):
     :param use_bf16: run the hidden layers of every network in bfloat16 (``torch.autocast``) during
         gradient steps; weights, optimizers, output layers and losses stay float32. 2.6x faster
         PEARL+ steps on a CPU with AVX512-BF16 (slower on CPUs without it); see docs/pearl.md
+    :param grad_conflict_log_freq: every this many gradient steps, log ``train/grad_conflict_ratio``
+        (``||prior_coef * grad prior term|| / ||grad posterior term||`` on the actor parameters) and
+        ``train/grad_conflict_cos`` (their cosine) from that step's losses (docs/diagnostics.md); 0: off
     :param policy_kwargs: extra policy arguments (``net_arch``, ``activation_fn``, ``n_critics``, ...)
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder
@@ -149,6 +153,7 @@ class PEARL(OffPolicyAlgorithm):
         num_extra_rl_steps_posterior: int = 600,
         num_train_steps_per_itr: int = 2000,
         use_bf16: bool = False,
+        grad_conflict_log_freq: int = 0,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -165,6 +170,8 @@ class PEARL(OffPolicyAlgorithm):
         ):
             if value < 1:
                 raise ValueError(f"{name} must be >= 1, got {value}")
+        if grad_conflict_log_freq < 0:
+            raise ValueError(f"grad_conflict_log_freq must be >= 0 (0: off), got {grad_conflict_log_freq}")
         if min(num_initial_steps, num_steps_prior, num_steps_posterior, num_extra_rl_steps_posterior) < 0:
             raise ValueError("the num_*_steps collection sizes must be >= 0")
         if num_steps_prior + num_steps_posterior == 0:
@@ -191,6 +198,8 @@ class PEARL(OffPolicyAlgorithm):
             sde_support=False,
             supported_action_spaces=None,  # checked in _setup_model with a ValueError
         )
+        # Saved with the model: PEARL keeps the class defaults (no prior term), PEARLPlus set its own.
+        self.prior_coef, self.prior_critic_mode = self.prior_coef, self.prior_critic_mode
         self.kl_weight = kl_weight
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
@@ -208,6 +217,7 @@ class PEARL(OffPolicyAlgorithm):
         self.num_extra_rl_steps_posterior = num_extra_rl_steps_posterior
         self.num_train_steps_per_itr = num_train_steps_per_itr
         self.use_bf16 = use_bf16
+        self.grad_conflict_log_freq = grad_conflict_log_freq
         self.n_iterations = 0
         self.log_ent_coef: th.Tensor | None = None
         self.ent_coef_optimizer: th.optim.Adam | None = None
@@ -430,10 +440,12 @@ class PEARL(OffPolicyAlgorithm):
             optimizers = [*optimizers, self.ent_coef_optimizer]
         self._update_learning_rate(optimizers)
         logs: dict[str, list[float]] = {}
-        for _ in range(gradient_steps):
+        for step in range(gradient_steps):
             replay, context, z0 = self._sample_meta_batch(batch_size)
             with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self.use_bf16):
                 losses = self._compute_losses(replay, context, z0)
+            if self.grad_conflict_log_freq > 0 and (self._n_updates + step) % self.grad_conflict_log_freq == 0:
+                record_gradient_conflict(self, losses, logs)  # two extra actor-only backward passes
             for optimizer in optimizers:
                 optimizer.zero_grad(set_to_none=True)
             self._total_loss(losses).backward()

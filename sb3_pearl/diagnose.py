@@ -1,0 +1,202 @@
+"""``python -m sb3_pearl.diagnose <run folder or model.zip>``: the prior-safety diagnostics of a trained model.
+
+Prints :func:`sb3_pearl.common.diagnostics.compute_diagnostics` as a table (``--json``: as JSON).
+The model and its env id are found in:
+
+- a reproduction-harness run folder ``results/<exp>/<family>/<variant>/seed<N>/`` holding
+  ``result.json`` (whose spec names the env id, and possibly env kwargs) and ``model.zip``;
+- an rl-zoo run folder ``logs/<algo>/<EnvId>_<n>/`` holding ``<EnvId>.zip`` and
+  ``<EnvId>/config.yml`` (env kwargs from ``<EnvId>/args.yml``);
+- a model zip: the env id comes from ``--env-id`` or from the zip's folder (either layout above).
+
+``--env-id`` overrides the env id found. See docs/diagnostics.md for how to read the numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from collections import deque
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import yaml
+from stable_baselines3.common.save_util import load_from_zip_file
+
+import sb3_pearl  # noqa: F401  (registers the envs)
+from sb3_pearl.common.diagnostics import (
+    DEFAULT_N_GRAD_BATCHES,
+    DEFAULT_N_POSTERIOR_SAMPLES,
+    DEFAULT_N_TASKS,
+    DEFAULT_N_Z0,
+    compute_diagnostics,
+    format_diagnostics,
+)
+from sb3_pearl.pearl import PEARL, PEARLPlus
+
+LAYOUT_HELP = (
+    "expected a run folder with result.json and model.zip (reproduction harness: results/<exp>/<family>/<variant>/seed<N>/), "
+    "an rl-zoo run folder logs/<algo>/<EnvId>_<n>/ with <EnvId>.zip and <EnvId>/config.yml, or a model zip "
+    "(with --env-id if its folder is neither)"
+)
+# Keys that may name the env id in a harness result.json (at any depth of nested dicts).
+ENV_ID_KEYS = ("env_id", "env", "env_name")
+
+
+class RunFolderError(ValueError):
+    """The path is not a run folder or model zip the diagnostics can read."""
+
+
+def _env_from_result(path: Path) -> tuple[str | None, dict[str, Any]]:
+    """
+    Env id (a registered one) and env kwargs named in a harness ``result.json``.
+
+    The shallowest dict (breadth first through nested dicts, e.g. ``spec`` then ``spec["family"]``) with an
+    ``env_id`` / ``env`` / ``env_name`` entry naming a registered env wins; ``env_kwargs`` is read beside it.
+    """
+    with open(path) as file:
+        data = json.load(file)
+    queue: deque[Any] = deque([data])
+    while queue:
+        section = queue.popleft()
+        if not isinstance(section, dict):
+            continue
+        for key in ENV_ID_KEYS:
+            value = section.get(key)
+            if isinstance(value, str) and value in gym.registry:
+                kwargs = section.get("env_kwargs")
+                return value, dict(kwargs) if isinstance(kwargs, dict) else {}
+        queue.extend(value for value in section.values() if isinstance(value, dict))
+    return None, {}
+
+
+def _zoo_env_folders(folder: Path) -> list[Path]:
+    """Sub-folders ``<EnvId>/`` holding a ``config.yml`` (rl-zoo run folder)."""
+    return sorted(sub for sub in folder.iterdir() if sub.is_dir() and (sub / "config.yml").is_file())
+
+
+def _zoo_env_kwargs(env_folder: Path) -> dict[str, Any]:
+    args_path = env_folder / "args.yml"
+    if not args_path.is_file():
+        return {}
+    with open(args_path) as file:
+        saved = yaml.load(file, Loader=yaml.UnsafeLoader) or {}
+    return dict(saved.get("env_kwargs") or {})
+
+
+def find_run(path: str | os.PathLike[str], env_id: str | None = None) -> tuple[Path, str, dict[str, Any]]:
+    """
+    The model zip, env id and env kwargs of a run folder or model zip (module docstring).
+
+    :param path: a run folder (harness or rl-zoo layout) or a model zip
+    :param env_id: env id overriding the one found (required for a zip outside both layouts)
+    :return: model path, env id, env kwargs
+    """
+    target = Path(path)
+    if not target.exists():
+        raise RunFolderError(f"{target} does not exist: {LAYOUT_HELP}")
+    folder = target.parent if target.is_file() else target
+    model_path: Path | None = target if target.is_file() else None
+    found_env: str | None = None
+    env_kwargs: dict[str, Any] = {}
+    if (folder / "result.json").is_file():
+        found_env, env_kwargs = _env_from_result(folder / "result.json")
+        if model_path is None:
+            model_path = folder / "model.zip"
+    else:
+        env_folders = _zoo_env_folders(folder)
+        if len(env_folders) > 1 and env_id is None:
+            raise RunFolderError(f"{folder} holds several <EnvId>/config.yml ({[f.name for f in env_folders]}): pass --env-id")
+        chosen = [f for f in env_folders if env_id is None or f.name == env_id]
+        if chosen:
+            found_env, env_kwargs = chosen[0].name, _zoo_env_kwargs(chosen[0])
+            if model_path is None:
+                model_path = folder / f"{found_env}.zip"
+    if model_path is None:
+        raise RunFolderError(f"{folder} is not a run folder: {LAYOUT_HELP}")
+    if not model_path.is_file() or model_path.suffix != ".zip":
+        raise RunFolderError(f"no model zip at {model_path}: {LAYOUT_HELP}")
+    env_id = env_id or found_env
+    if env_id is None:
+        raise RunFolderError(f"cannot tell the env id of {model_path}: pass --env-id ({LAYOUT_HELP})")
+    if env_id not in gym.registry:
+        raise RunFolderError(f"unknown env id {env_id!r} (not registered with gymnasium)")
+    return model_path, env_id, env_kwargs
+
+
+def load_model(model_path: str | Path, env: gym.Env, device: str = "auto") -> PEARL:
+    """
+    Load a PEARL or PEARL+ zip with its own class (PEARL when it has no prior critic).
+
+    :param model_path: the zip
+    :param env: the env it is used with
+    :param device: torch device
+    :return: the model
+    """
+    data, _, _ = load_from_zip_file(model_path, device="cpu", load_data=True)
+    if data is None or "prior_critic_mode" not in data or "prior_coef" not in data:
+        raise RunFolderError(f"{model_path} is not a PEARL / PEARL+ model: the diagnostics need one")
+    cls = PEARL if data["prior_critic_mode"] == "none" else PEARLPlus
+    return cls.load(model_path, env=env, device=device)
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line."""
+    p = argparse.ArgumentParser(
+        prog="python -m sb3_pearl.diagnose",
+        description="Prior-safety diagnostics of a trained PEARL / PEARL+ model: posterior-prior overlap, k = 0 "
+        "violations against the distance of z0 to the posteriors, prior-critic calibration and the actor's "
+        "gradient conflict (docs/diagnostics.md).",
+    )
+    p.add_argument("path", help="run folder (result.json + model.zip, or rl-zoo logs/<algo>/<EnvId>_<n>/) or a model zip")
+    p.add_argument("--env-id", default=None, help="env id (default: from the run folder)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the diagnostics' draws and resets")
+    p.add_argument("--n-tasks", type=int, default=DEFAULT_N_TASKS, help="training / held-out tasks used")
+    p.add_argument("--n-z0", type=int, default=DEFAULT_N_Z0, help="prior draws rolled out per task")
+    p.add_argument("--n-posterior-samples", type=int, default=DEFAULT_N_POSTERIOR_SAMPLES, help="per training task")
+    p.add_argument("--n-grad-batches", type=int, default=DEFAULT_N_GRAD_BATCHES, help="meta-batches of the gradient conflict")
+    p.add_argument("--max-steps", type=int, default=None, help="cap on trajectory length")
+    p.add_argument("--device", default="cpu", help="torch device")
+    p.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """
+    Run the diagnostics from the command line and print them.
+
+    :param argv: arguments (default: ``sys.argv[1:]``)
+    :return: the diagnostics
+    """
+    p = parser()
+    args = p.parse_args(argv)
+    try:
+        model_path, env_id, env_kwargs = find_run(args.path, args.env_id)
+        env = gym.make(env_id, **env_kwargs)
+        model = load_model(model_path, env, args.device)
+    except RunFolderError as error:
+        p.error(str(error))
+    result = compute_diagnostics(
+        model,
+        env,
+        seed=args.seed,
+        n_tasks=args.n_tasks,
+        n_z0=args.n_z0,
+        n_posterior_samples=args.n_posterior_samples,
+        n_grad_batches=args.n_grad_batches,
+        max_steps=args.max_steps,
+    )
+    result["run"] = {"model": str(model_path), "env_id": env_id, "env_kwargs": env_kwargs}
+    if args.json:
+        print(json.dumps(result, indent=1, default=str))
+    else:
+        print(f"{model_path} on {env_id}" + (f" {env_kwargs}" if env_kwargs else ""))
+        print(format_diagnostics(result))
+    return result
+
+
+if __name__ == "__main__":
+    main()
