@@ -1,0 +1,108 @@
+"""Calibration of the prior critic Q~(s0, a0, z0) against Monte-Carlo soft returns of the z0 policy."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_pearl.common.diagnostics.rollouts import _CALIBRATION, rollout_with_z
+from sb3_pearl.common.seeding import derived_seed
+from sb3_pearl.common.soft_actor_critic import evaluate_policy, q_of_actions, q_of_policy, soft_value
+from sb3_pearl.envs.task_protocol import Task
+
+if TYPE_CHECKING:
+    from sb3_pearl.pearl.pearl import PEARL
+
+
+def _critic_for_prior(model: PEARL) -> tuple[Any, str]:
+    """The critic that scores the prior term: Q~ (separate) or Q (shared mode, PEARL), with its name."""
+    if model.prior_critic is not None:
+        return model.prior_critic, "prior critic Q~(s, a, z0)"
+    if model.prior_critic_mode == "shared":
+        return model.critic, "critic Q(s, a, z0) (prior_critic='shared': the prior term's critic)"
+    return model.critic, "critic Q(s, a, z0) (PEARL has no prior critic)"
+
+
+def compute_calibration(
+    model: PEARL,
+    env: gym.Env | VecEnv,
+    tasks: list[Task],
+    z0: np.ndarray,
+    seed: int,
+    max_steps: int | None,
+) -> dict[str, Any]:
+    """
+    The prior critic at start states against Monte-Carlo returns of the z0 policy.
+
+    Q~ is fitted (reward-scaled soft Bellman target, time limits bootstrapped) to
+
+        Q~(s0, a0, z0) = E[ sum_{t>=0} gamma^t * reward_scale * r_t - ent_coef * sum_{t>=1} gamma^t * log pi(a_t | s_t, z0) ]
+
+    under the *stochastic* policy ``pi(. | ., z0)``, averaged over the training tasks the meta-batches
+    mix (the prior critic does not see the task). For each z0 and training task one stochastic
+    trajectory from ``s0`` is rolled out; ``a0`` is its first action. ``mc_return`` is that sum over
+    the trajectory; ``mc_return_bootstrapped`` adds ``gamma^T * V~(s_T, z0)`` when the trajectory was
+    cut by the time limit (as the training target does; 0 after a true termination). A calibrated
+    critic has ``bias = q - mc_return_bootstrapped`` near 0.
+
+    :param model: the model
+    :param env: the env
+    :param tasks: the training tasks rolled out
+    :param z0: prior draws, shape (n_z0, L)
+    :param seed: seed of the env resets
+    :param max_steps: trajectory cap (a cut trajectory is bootstrapped like a time limit)
+    :return: means over (z0, task) and the correlation over z0 draws of Q~ with the returns
+    """
+    critic, critic_name = _critic_for_prior(model)
+    ent_coef = model._current_ent_coef()
+    discrete = model.policy.discrete
+    q = np.zeros((len(z0), len(tasks)))
+    mc = np.zeros_like(q)
+    boot = np.zeros_like(q)
+    env_returns = np.zeros_like(q)
+    lengths = np.zeros_like(q)
+    for i, z in enumerate(z0):
+        z_t = th.as_tensor(z, dtype=th.float32, device=model.device)
+        for j, task in enumerate(tasks):
+            traj = rollout_with_z(model, env, task, z_t, False, derived_seed(seed, _CALIBRATION, i, j), max_steps)
+            discounts = model.gamma ** np.arange(traj.length)  # (T,)
+            soft = model.reward_scale * traj.rewards
+            soft[1:] -= float(ent_coef) * traj.log_probs[1:]  # the entropy bonus enters from t = 1 on
+            mc[i, j] = float((discounts * soft).sum())
+            ends = th.as_tensor(traj.observations[[0, -1]], device=model.device)  # (2, obs_dim): s_0 and s_T
+            x = th.cat([ends, z_t.expand(2, -1)], dim=-1)  # (2, obs_dim + L)
+            with th.no_grad():
+                a0 = th.as_tensor(traj.actions[:1], device=model.device)  # (1, act_dim)
+                q[i, j] = float(q_of_actions(critic, x[:1], a0, discrete).min(dim=0).values)
+                tail = 0.0
+                if not traj.terminated:
+                    pe = evaluate_policy(model.actor, x[1:])
+                    tail = float(soft_value(q_of_policy(critic, x[1:], pe), pe, ent_coef))
+            boot[i, j] = mc[i, j] + model.gamma**traj.length * tail
+            env_returns[i, j] = traj.episode_return
+            lengths[i, j] = traj.length
+    q_z, boot_z = q.mean(axis=1), boot.mean(axis=1)  # per z0 draw, averaged over tasks
+    corr = float(np.corrcoef(q_z, boot_z)[0, 1]) if q_z.std() > 0 and boot_z.std() > 0 else math.nan
+    return {
+        "critic": critic_name,
+        "n_tasks": len(tasks),
+        "n_z0": len(z0),
+        "gamma": model.gamma,
+        "reward_scale": model.reward_scale,
+        "ent_coef": float(ent_coef),
+        "q_mean": float(q.mean()),
+        "mc_return_mean": float(mc.mean()),
+        "mc_return_bootstrapped_mean": float(boot.mean()),
+        "bias": float((q - boot).mean()),
+        "abs_error_mean": float(np.abs(q - boot).mean()),
+        "q_std_over_z0": float(q_z.std()),
+        "mc_std_over_z0": float(boot_z.std()),
+        "q_mc_corr_over_z0": corr,
+        "env_return_mean": float(env_returns.mean()),
+        "length_mean": float(lengths.mean()),
+    }
