@@ -1,0 +1,52 @@
+"""Declarative reproduction experiments (one per paper table, plus the fast family) and their budget presets.
+
+- :mod:`~sb3_pearl.experiments.spec`: the dataclasses (families, variants, paper numbers, claims);
+- :mod:`~sb3_pearl.experiments.families`: the task families with their shifted test distributions
+  and competence criteria;
+- :mod:`~sb3_pearl.experiments.table1`, :mod:`~sb3_pearl.experiments.table2`,
+  :mod:`~sb3_pearl.experiments.table3`, :mod:`~sb3_pearl.experiments.safe_point`: the experiments;
+- :mod:`~sb3_pearl.experiments.budgets`: the ``smoke`` / ``cpu`` / ``paper`` presets (YAML data) and
+  :func:`~sb3_pearl.experiments.budgets.load_budget`.
+
+``python -m sb3_pearl.reproduce`` runs them (docs/reproduce.md).
+"""
+
+from __future__ import annotations
+
+from sb3_pearl.experiments.budgets import PRESETS, load_budget
+from sb3_pearl.experiments.families import FAMILIES, get_family
+from sb3_pearl.experiments.safe_point import SAFE_POINT_EXPERIMENT
+from sb3_pearl.experiments.spec import Claim, Criterion, Experiment, Family, PaperCell, Variant
+from sb3_pearl.experiments.table1 import TABLE1
+from sb3_pearl.experiments.table2 import TABLE2
+from sb3_pearl.experiments.table3 import TABLE3
+
+EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (TABLE1, TABLE2, TABLE3, SAFE_POINT_EXPERIMENT)}
+
+
+def get_experiment(name: str) -> Experiment:
+    """
+    The experiment called ``name``.
+
+    :param name: ``table1``, ``table2``, ``table3`` or ``safe-point``
+    :return: the experiment
+    """
+    if name not in EXPERIMENTS:
+        raise ValueError(f"unknown experiment {name!r}: choose among {sorted(EXPERIMENTS)}")
+    return EXPERIMENTS[name]
+
+
+__all__ = [
+    "EXPERIMENTS",
+    "FAMILIES",
+    "PRESETS",
+    "Claim",
+    "Criterion",
+    "Experiment",
+    "Family",
+    "PaperCell",
+    "Variant",
+    "get_experiment",
+    "get_family",
+    "load_budget",
+]

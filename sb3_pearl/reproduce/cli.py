@@ -1,0 +1,119 @@
+"""The command line of ``python -m sb3_pearl.reproduce`` (docs/reproduce.md).
+
+::
+
+    python -m sb3_pearl.reproduce list
+    python -m sb3_pearl.reproduce run table1 --family walker2d-vel --budget cpu --seeds 0-3 --jobs 2 \\
+        [--variants pearl pearlplus] [--force] [--results-dir results] [--dry-run]
+    python -m sb3_pearl.reproduce report [--results-dir results] [--out docs/results.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from sb3_pearl.experiments import EXPERIMENTS, get_experiment
+from sb3_pearl.experiments.budgets import PRESETS, load_budget
+from sb3_pearl.reproduce.layout import parse_seeds
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser (subcommands ``list``, ``run``, ``report`` and the internal ``run-one``)."""
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_pearl.reproduce",
+        description="Run the paper's experiments (each variant and seed its own process) and rebuild docs/results.md.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    sub.add_parser("list", help="the experiments, their families, variants and default seeds, and the budget presets")
+
+    run = sub.add_parser("run", help="train and meta-test every (family, variant, seed) of an experiment")
+    run.add_argument("experiment", choices=sorted(EXPERIMENTS), help="table1, table2, table3 or safe-point")
+    run.add_argument("--family", nargs="+", default=None, help="families of the experiment (default: all)")
+    run.add_argument("--variants", nargs="+", default=None, help="variants of the experiment (default: all)")
+    run.add_argument("--budget", default=None, choices=PRESETS, help="budget preset (default: the experiment's, cpu)")
+    run.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 or 0-3,7 (default: the experiment's)")
+    run.add_argument("--jobs", type=int, default=1, help="runs at a time, one process and one torch thread each")
+    run.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
+    run.add_argument("--force", action="store_true", help="rerun runs that already have a result.json")
+    run.add_argument("--dry-run", action="store_true", help="print the planned runs and their budgets, run nothing")
+
+    report = sub.add_parser("report", help="rebuild the tables and figures of the results page from the results")
+    report.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
+    report.add_argument("--out", default="docs/results.md", help="markdown file; its text outside the markers is kept")
+
+    one = sub.add_parser("run-one", help=argparse.SUPPRESS)  # what each child process of `run` executes
+    one.add_argument("--experiment", required=True)
+    one.add_argument("--family", required=True)
+    one.add_argument("--variant", required=True)
+    one.add_argument("--seed", type=int, required=True)
+    one.add_argument("--budget", required=True, choices=PRESETS)
+    one.add_argument("--results-dir", required=True)
+    return parser
+
+
+def _list() -> None:
+    for experiment in EXPERIMENTS.values():
+        print(f"{experiment.name}: {experiment.title}")
+        print(f"  families: {', '.join(f.name for f in experiment.families)}")
+        print(f"  variants: {', '.join(f'{v.name} ({v.label})' for v in experiment.variants)}")
+        print(f"  default seeds {list(experiment.seeds)}, budget {experiment.budget}, eval seed {experiment.eval_seed}")
+    print(f"budget presets: {', '.join(PRESETS)} (sb3_pearl/experiments/presets/)")
+
+
+def _run(args: argparse.Namespace) -> int:
+    from sb3_pearl.reproduce.scheduler import plan_runs, run_experiment
+
+    experiment = get_experiment(args.experiment)
+    budget = args.budget or experiment.budget
+    seeds = parse_seeds(args.seeds) if args.seeds is not None else list(experiment.seeds)
+    if args.dry_run:
+        for key in plan_runs(experiment, budget, seeds, args.family, args.variants):
+            variant = experiment.variant(key.variant)
+            entry = load_budget(budget, experiment.family(key.family).budget_name, variant.algo)
+            print(f"{key.label()}: {variant.algo}, {entry['n_timesteps']} steps, meta-test {entry['meta_test']}")
+        return 0
+    summary = run_experiment(
+        experiment,
+        budget,
+        seeds,
+        args.results_dir,
+        jobs=args.jobs,
+        families=args.family,
+        variants=args.variants,
+        force=args.force,
+    )
+    print(f"{len(summary.done)} done, {len(summary.skipped)} skipped, {len(summary.failed)} failed")
+    if summary.failed:
+        print("failed: " + ", ".join(key.label() for key in summary.failed), file=sys.stderr)
+    return 1 if summary.failed else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Parse the command line and run the subcommand.
+
+    :param argv: arguments (default: ``sys.argv[1:]``)
+    :return: the exit status
+    """
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "list":
+            _list()
+            return 0
+        if args.command == "run":
+            return _run(args)
+        if args.command == "report":
+            from sb3_pearl.reproduce.report import write_report
+
+            print(f"wrote {write_report(args.results_dir, args.out)}")
+            return 0
+    except ValueError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    from sb3_pearl.reproduce.runner import run_one  # run-one: errors keep their traceback (in run.log)
+
+    run_one(args.experiment, args.family, args.variant, args.seed, args.budget, args.results_dir)
+    return 0

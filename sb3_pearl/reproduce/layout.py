@@ -1,0 +1,161 @@
+"""The results layout of ``python -m sb3_pearl.reproduce`` and the provenance stored with every run.
+
+::
+
+    <results-dir>/<experiment>/<family>/<variant>/seed<N>/
+        result.json    written last and atomically: its presence means the run is complete
+        model.zip      the trained model (``<Algo>.load``)
+        progress.csv   the training log (SB3 logger, csv format)
+        run.log        the run's stdout and stderr
+
+``result.json`` keys: :data:`RESULT_KEYS`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import re
+import subprocess
+import tempfile
+from importlib import metadata
+from pathlib import Path
+from typing import Any, NamedTuple
+
+RESULT_FILE = "result.json"
+MODEL_FILE = "model.zip"
+PROGRESS_FILE = "progress.csv"
+LOG_FILE = "run.log"
+RESULT_KEYS = (
+    "experiment",
+    "family",
+    "variant",
+    "seed",
+    "budget_preset",
+    "spec",
+    "budget",
+    "model_kwargs",
+    "eval_seed",
+    "versions",
+    "cpu",
+    "wall_time_s",
+    "num_timesteps",
+    "device",
+    "meta_test",
+    "shift",
+    "competence",
+    "diagnostics",
+)
+PACKAGES = ("sb3-pearl", "stable-baselines3", "torch", "gymnasium", "numpy", "mujoco", "highway-env")
+
+
+class RunKey(NamedTuple):
+    """One run of the reproduction: (experiment, family, variant, seed)."""
+
+    experiment: str
+    family: str
+    variant: str
+    seed: int
+
+    def label(self) -> str:
+        return f"{self.experiment} {self.family} {self.variant} seed{self.seed}"
+
+
+def run_dir(results_dir: str | os.PathLike[str], key: RunKey) -> Path:
+    """The folder of one run: ``<results-dir>/<experiment>/<family>/<variant>/seed<N>``."""
+    return Path(results_dir) / key.experiment / key.family / key.variant / f"seed{key.seed}"
+
+
+def find_results(results_dir: str | os.PathLike[str]) -> list[Path]:
+    """Every complete run (its ``result.json``) under ``results_dir``, sorted."""
+    return sorted(Path(results_dir).glob(f"*/*/*/seed*/{RESULT_FILE}"))
+
+
+def write_json_atomic(path: str | os.PathLike[str], data: Any) -> None:
+    """
+    Write JSON so that the file either does not exist or is complete (temporary file, then ``os.replace``).
+
+    :param path: destination
+    :param data: JSON-serialisable data (nan / inf are written as null by the caller's conversion)
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as file:
+            json.dump(data, file, indent=1, allow_nan=False)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_result(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read a ``result.json``."""
+    with open(path) as file:
+        return json.load(file)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """
+    Seeds from the command line: ``"0-3"``, ``"0,2,5"``, ``"0-3,7"``.
+
+    :param text: the argument
+    :return: sorted distinct seeds
+    """
+    seeds: set[int] = set()
+    for part in text.split(","):
+        part = part.strip()
+        match = re.fullmatch(r"(\d+)(?:-(\d+))?", part)
+        if not match:
+            raise ValueError(f"--seeds: {part!r} is not a seed or a range like 0-3 (full argument {text!r})")
+        first, last = int(match.group(1)), int(match.group(2) or match.group(1))
+        if last < first:
+            raise ValueError(f"--seeds: empty range {part!r}")
+        seeds.update(range(first, last + 1))
+    return sorted(seeds)
+
+
+def package_versions() -> dict[str, str | None]:
+    """Installed versions of the packages a result depends on, and the git commit of the code if it is a checkout."""
+    versions: dict[str, str | None] = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    versions["python"] = platform.python_version()
+    versions["git_commit"] = _git_commit()
+    return versions
+
+
+def _git_commit() -> str | None:
+    source = Path(__file__).resolve().parent
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=source, capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=source, capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return commit + ("-dirty" if dirty else "")
+
+
+def cpu_info() -> dict[str, Any]:
+    """The CPU model, core count and load average (the machine may be shared: the load says how much)."""
+    model = platform.processor() or None
+    try:
+        with open("/proc/cpuinfo") as file:
+            for line in file:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    load = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    return {"model": model, "cores": os.cpu_count(), "load_average": load, "machine": platform.machine()}

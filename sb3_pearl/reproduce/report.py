@@ -1,0 +1,415 @@
+"""``python -m sb3_pearl.reproduce report``: the tables and figures of docs/results.md from whatever results/ holds.
+
+Results are grouped by (experiment, budget preset, family); within a group, per variant and k:
+
+- violation rate: mean over seeds of the per-seed rates with its 95% t interval over seeds, and the
+  pooled rate over every trajectory with its 95% Wilson interval;
+- mean return: mean over seeds of the per-seed means with its 95% t interval;
+- the number of trajectories and of seeds; the paper's number beside ours;
+- the verdicts of the claims on that cell (:mod:`sb3_pearl.reproduce.stats`: paired over seeds).
+
+The generated part of the output file sits between :data:`BEGIN` and :data:`END`; the rest of the file
+(a hand-written preamble, older sections) is kept. Figures (adaptation curves: return and violation
+rate against k, one line per variant) go to ``figures/`` beside the output file.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sb3_pearl.common.meta_test import PAPER_KS
+from sb3_pearl.common.statistics import wilson_interval
+from sb3_pearl.experiments import EXPERIMENTS
+from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Claim, Experiment, resolve_k
+from sb3_pearl.reproduce.layout import find_results, read_result
+from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval, verdict
+
+BEGIN = "<!-- reproduce:begin -->"
+END = "<!-- reproduce:end -->"
+METRIC_KEYS = {"violation": "violation_rate", "return": "return_mean"}
+DIRECTION_TEXT = {"lower": "<", "higher": ">", "equal": "=", "not_lower": ">=", "not_higher": "<="}
+
+# variant -> seed -> result.json
+Group = dict[str, dict[int, dict[str, Any]]]
+
+
+@dataclass(frozen=True)
+class CellStats:
+    """Statistics of one (variant, k) cell over seeds."""
+
+    violation: Interval
+    pooled_rate: float
+    pooled_low: float
+    pooled_high: float
+    ret: Interval
+    n_trajectories: int
+    n_seeds: int
+
+
+@dataclass(frozen=True)
+class ClaimResult:
+    """A claim with our paired difference and the verdict."""
+
+    claim: Claim
+    k: int
+    difference: Interval
+    margin: float
+    verdict: str
+
+
+def load_groups(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str], Group]:
+    """
+    Every complete run under ``results_dir``, grouped.
+
+    :param results_dir: root of the results layout
+    :return: (experiment, budget preset, family) -> variant -> seed -> result
+    """
+    groups: dict[tuple[str, str, str], Group] = defaultdict(lambda: defaultdict(dict))
+    for path in find_results(results_dir):
+        result = read_result(path)
+        key = (result["experiment"], result["budget_preset"], result["family"])
+        groups[key][result["variant"]][int(result["seed"])] = result
+    return {key: {variant: dict(seeds) for variant, seeds in group.items()} for key, group in sorted(groups.items())}
+
+
+def summary_at(result: dict[str, Any], k: int, section: str = "meta_test") -> dict[str, Any] | None:
+    """The summary entry of trajectory ``k`` of a run's meta-test (``section``: ``meta_test`` or ``shift``)."""
+    block = result.get(section) or {}
+    for entry in block.get("summary", []):
+        if int(entry["k"]) == k:
+            return entry
+    return None
+
+
+def last_k(results: Mapping[int, dict[str, Any]], section: str = "meta_test") -> int:
+    """The last trajectory index K of the runs' meta-tests (the smallest over runs)."""
+    ks = [max(int(e["k"]) for e in (r.get(section) or {}).get("summary", [{"k": 0}])) for r in results.values()]
+    return min(ks) if ks else 0
+
+
+def seed_values(results: Mapping[int, dict[str, Any]], k: int, metric: str, section: str = "meta_test") -> dict[int, float]:
+    """Per-seed violation rate or mean return at ``k`` (seeds without that k are left out)."""
+    values = {}
+    for seed, result in results.items():
+        entry = summary_at(result, k, section)
+        value = None if entry is None else entry.get(METRIC_KEYS[metric])
+        if value is not None and not (isinstance(value, float) and math.isnan(value)):
+            values[seed] = float(value)
+    return values
+
+
+def cell_stats(results: Mapping[int, dict[str, Any]], k: int, section: str = "meta_test") -> CellStats | None:
+    """
+    The statistics of one (variant, k) cell.
+
+    :param results: seed -> result of one variant
+    :param k: trajectory index
+    :param section: ``meta_test`` or ``shift``
+    :return: the statistics, None if no run has trajectory k
+    """
+    entries = [e for e in (summary_at(r, k, section) for r in results.values()) if e is not None]
+    if not entries:
+        return None
+    rates = [float(e["violation_rate"]) for e in entries]
+    returns = [float(e["return_mean"]) for e in entries]
+    n = [int(e["n"]) for e in entries]
+    violated = sum(round(rate * count) for rate, count in zip(rates, n))
+    low, high = wilson_interval(violated, sum(n))
+    return CellStats(
+        violation=t_interval(rates),
+        pooled_rate=violated / sum(n),
+        pooled_low=low,
+        pooled_high=high,
+        ret=t_interval(returns),
+        n_trajectories=sum(n),
+        n_seeds=len(entries),
+    )
+
+
+def claim_margin(claim: Claim, experiment: Experiment) -> float:
+    """The claim's margin: its own, else 5 points for violation rates or the family's return margin."""
+    if claim.margin is not None:
+        return claim.margin
+    return VIOLATION_MARGIN if claim.metric == "violation" else experiment.family(claim.family).return_margin
+
+
+def evaluate_claim(claim: Claim, experiment: Experiment, group: Group) -> ClaimResult | None:
+    """
+    Our paired difference and the verdict of one claim (None if either variant has no runs).
+
+    :param claim: the claim
+    :param experiment: its experiment
+    :param group: variant -> seed -> result of the claim's family
+    :return: the result (None also when the runs did not roll out trajectory ``claim.k``)
+    """
+    if claim.variant not in group or claim.reference not in group:
+        return None
+    last = min(last_k(group[claim.variant]), last_k(group[claim.reference]))
+    if claim.k > last:
+        return None  # the meta-test did not roll out that trajectory
+    k = resolve_k(claim.k, last)
+    diffs = paired_differences(
+        seed_values(group[claim.variant], k, claim.metric), seed_values(group[claim.reference], k, claim.metric)
+    )
+    interval = t_interval(list(diffs.values()))
+    margin = claim_margin(claim, experiment)
+    return ClaimResult(claim, k, interval, margin, verdict(interval, claim.direction, margin))
+
+
+# ----------------------------------------------------------------------------------------------
+# Formatting
+# ----------------------------------------------------------------------------------------------
+def _num(value: float, digits: int = 1, scale: float = 1.0) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
+
+
+def format_interval(interval: Interval, digits: int = 1, scale: float = 1.0) -> str:
+    """``mean [low, high]``, or the mean alone when there is no interval."""
+    mean = _num(interval.mean, digits, scale)
+    if not (math.isfinite(interval.low) and math.isfinite(interval.high)):
+        return mean
+    return f"{mean} [{_num(interval.low, digits, scale)}, {_num(interval.high, digits, scale)}]"
+
+
+def _cell(text: str) -> str:
+    """Text safe inside a markdown table cell."""
+    return text.replace("|", "\\|")
+
+
+def _label(experiment: Experiment, variant: str) -> str:
+    try:
+        return experiment.variant(variant).label
+    except ValueError:
+        return variant
+
+
+def shown_ks(group: Group, section: str = "meta_test") -> list[int]:
+    """The k columns of a table: the paper's 0, 1, 3, 5 that were rolled out, and the last k."""
+    last = min(last_k(results, section) for results in group.values())
+    return sorted({k for k in PAPER_KS if k <= last} | {last})
+
+
+def results_table(experiment: Experiment, family: str, group: Group, claims: Sequence[ClaimResult]) -> list[str]:
+    """The main table of a group: one row per (variant, k)."""
+    lines = [
+        "| variant | k | violation rate, % (95% t over seeds) | pooled, % (95% Wilson) | paper | "
+        "return (95% t over seeds) | paper | n traj. | seeds | verdicts |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    ks = shown_ks(group)
+    last = min(last_k(results) for results in group.values())
+    for variant in [v.name for v in experiment.variants if v.name in group]:
+        for k in ks:
+            stats = cell_stats(group[variant], k)
+            if stats is None:
+                continue
+            paper_v = experiment.paper_value(family, variant, "violation", k, last)
+            paper_r = experiment.paper_value(family, variant, "return", k, last)
+            verdicts = [
+                f"{c.claim.metric} vs {_label(experiment, c.claim.reference)}: {c.verdict}"
+                for c in claims
+                if c.claim.variant == variant and c.k == k
+            ]
+            pooled = f"{_num(stats.pooled_rate, 1, 100)} [{_num(stats.pooled_low, 1, 100)}, {_num(stats.pooled_high, 1, 100)}]"
+            lines.append(
+                f"| {_label(experiment, variant)} | {k} | {format_interval(stats.violation, 1, 100)} | {pooled} | "
+                f"{_num(paper_v.value, 2, 100) if paper_v else ''} | {format_interval(stats.ret)} | "
+                f"{_num(paper_r.value, 2) if paper_r else ''} | {stats.n_trajectories} | {stats.n_seeds} | "
+                f"{'; '.join(verdicts) if variant != experiment.reference or verdicts else 'reference'} |"
+            )
+    return lines
+
+
+def claims_table(experiment: Experiment, claims: Sequence[ClaimResult]) -> list[str]:
+    """One row per claim: what the paper says, our paired difference, the margin and the verdict."""
+    if not claims:
+        return []
+    lines = [
+        "| claim | k | paper | ours: variant - reference (95% t, paired over seeds) | margin | seeds | verdict |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for c in claims:
+        scale, digits = (100.0, 1) if c.claim.metric == "violation" else (1.0, 2)
+        unit = " pts" if c.claim.metric == "violation" else ""
+        text = (
+            f"{c.claim.metric} {_label(experiment, c.claim.variant)} {DIRECTION_TEXT[c.claim.direction]} "
+            f"{_label(experiment, c.claim.reference)}"
+        )
+        lines.append(
+            f"| {text} | {c.k} | {_cell(c.claim.source)} | {format_interval(c.difference, digits, scale)}{unit} | "
+            f"{_num(c.margin, digits, scale)}{unit} | {c.difference.n} | **{c.verdict}** |"
+        )
+    return lines
+
+
+def competence_table(experiment: Experiment, group: Group) -> list[str]:
+    """The competence criteria per variant: mean value over seeds and how many seeds pass."""
+    lines = [
+        "| variant | criterion (training tasks, k >= 1) | mean over seeds | bar | seeds passing |",
+        "|---|---|---|---|---|",
+    ]
+    for variant in [v.name for v in experiment.variants if v.name in group]:
+        per_criterion: dict[str, list[dict[str, Any]]] = defaultdict(list)
+        for result in group[variant].values():
+            for entry in (result.get("competence") or {}).get("criteria", []):
+                per_criterion[entry["description"]].append(entry)
+        for description, entries in per_criterion.items():
+            values = [e["value"] for e in entries if e["value"] is not None]
+            mean = float(np.mean(values)) if values else math.nan
+            bar = f"{'<=' if entries[0]['better'] == 'lower' else '>='} {entries[0]['threshold']:g}"
+            passing = sum(bool(e["passed"]) for e in entries)
+            name = _label(experiment, variant)
+            lines.append(f"| {name} | {_cell(description)} | {_num(mean, 3)} | {bar} | {passing}/{len(entries)} |")
+    return lines if len(lines) > 2 else []
+
+
+def shift_table(experiment: Experiment, group: Group) -> list[str]:
+    """The meta-test on the shifted task distribution, if the runs have one."""
+    shifted = {v: {s: r for s, r in seeds.items() if r.get("shift")} for v, seeds in group.items()}
+    shifted = {v: seeds for v, seeds in shifted.items() if seeds}
+    if not shifted:
+        return []
+    lines = [
+        "| variant | k | violation rate, % (95% t) | pooled, % (95% Wilson) | return (95% t) | n traj. | seeds |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for variant in [v.name for v in experiment.variants if v.name in shifted]:
+        for k in shown_ks(shifted, "shift"):
+            stats = cell_stats(shifted[variant], k, "shift")
+            if stats is None:
+                continue
+            pooled = f"{_num(stats.pooled_rate, 1, 100)} [{_num(stats.pooled_low, 1, 100)}, {_num(stats.pooled_high, 1, 100)}]"
+            lines.append(
+                f"| {_label(experiment, variant)} | {k} | {format_interval(stats.violation, 1, 100)} | {pooled} | "
+                f"{format_interval(stats.ret)} | {stats.n_trajectories} | {stats.n_seeds} |"
+            )
+    return lines
+
+
+def timing_table(experiment: Experiment, group: Group) -> list[str]:
+    """Mean wall times per variant (minutes), with the CPU and the load average seen."""
+    lines = [
+        "| variant | train min | meta-test min | total min | runs | CPU | load avg (start) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for variant in [v.name for v in experiment.variants if v.name in group]:
+        results = list(group[variant].values())
+        times = [r.get("wall_time_s", {}) for r in results]
+        mean = {key: float(np.mean([t.get(key, math.nan) for t in times])) / 60 for key in ("train", "meta_test", "total")}
+        cpu = results[0].get("cpu", {})
+        loads = [r.get("cpu", {}).get("load_average") or [math.nan] for r in results]
+        load = float(np.mean([entry[0] for entry in loads]))
+        lines.append(
+            f"| {_label(experiment, variant)} | {_num(mean['train'])} | {_num(mean['meta_test'])} | {_num(mean['total'])} | "
+            f"{len(results)} | {cpu.get('model')} ({cpu.get('cores')} cores) | {_num(load)} |"
+        )
+    return lines
+
+
+def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.PathLike[str], figures_link: str) -> str:
+    """
+    The generated markdown (without the markers) and the figures.
+
+    :param results_dir: root of the results layout
+    :param figures_dir: where the figures are written
+    :param figures_link: how the markdown links to ``figures_dir`` (relative to the output file)
+    :return: the markdown
+    """
+    from sb3_pearl.reproduce.figures import plot_group
+
+    groups = load_groups(results_dir)
+    out = [
+        "## Reproduction runs (generated by `python -m sb3_pearl.reproduce report`)",
+        "",
+        "Generated from the runs under `" + str(results_dir) + "`; settings, statistics and the verdict rule: "
+        "[docs/reproduce.md](reproduce.md). Violation rates in %; k = 0 is the prior policy, k >= 1 after k "
+        "trajectories; the paper column is the paper's number for the same cell.",
+        "",
+    ]
+    if not groups:
+        out += ["No complete run found.", ""]
+        return "\n".join(out)
+    for (experiment_name, budget, family), group in groups.items():
+        experiment = EXPERIMENTS.get(experiment_name)
+        if experiment is None:
+            out += [f"### {experiment_name} / {family} (budget {budget})", "", "Unknown experiment: not reported.", ""]
+            continue
+        claims = [
+            c
+            for c in (evaluate_claim(claim, experiment, group) for claim in experiment.claims if claim.family == family)
+            if c is not None
+        ]
+        seeds = sorted({seed for results in group.values() for seed in results})
+        out += [
+            f"### {experiment.title}: {family} (budget `{budget}`)",
+            "",
+            f"{experiment.description}. Seeds {seeds}; test tasks drawn with eval seed {experiment.eval_seed} "
+            "(the same for every variant and seed).",
+            "",
+            *results_table(experiment, family, group, claims),
+            "",
+        ]
+        if claims:
+            counts = {v: sum(c.verdict == v for c in claims) for v in ("reproduced", "not reproduced", "inconclusive")}
+            out += [
+                f"Claims: {counts['reproduced']} reproduced, {counts['not reproduced']} not reproduced, "
+                f"{counts['inconclusive']} inconclusive.",
+                "",
+                *claims_table(experiment, claims),
+                "",
+            ]
+        competence = competence_table(experiment, group)
+        if competence:
+            out += ["Competence on training tasks (docs/reproduce.md):", "", *competence, ""]
+        shift = shift_table(experiment, group)
+        if shift:
+            out += [f"Shifted test distribution: {experiment.family(family).shift_description}.", "", *shift, ""]
+        out += ["Wall times:", "", *timing_table(experiment, group), ""]
+        name = f"reproduce_{experiment_name}_{family}_{budget}.png"
+        plot_group(experiment, group, Path(figures_dir) / name, title=f"{experiment.name} / {family} (budget {budget})")
+        out += [f"![adaptation curves, {experiment_name} / {family}]({figures_link.rstrip('/')}/{name})", ""]
+    return "\n".join(out)
+
+
+def splice(document: str, generated: str) -> str:
+    """
+    Put ``generated`` between the markers of ``document`` (appended with markers if it has none).
+
+    :param document: the current file content
+    :param generated: the new generated part
+    :return: the new file content
+    """
+    block = f"{BEGIN}\n{generated.rstrip()}\n{END}"
+    if BEGIN in document and END in document:
+        head, rest = document.split(BEGIN, 1)
+        _, tail = rest.split(END, 1)
+        return head + block + tail
+    if BEGIN in document or END in document:
+        raise ValueError(f"the output file has only one of the markers {BEGIN} / {END}: fix it by hand")
+    return document.rstrip() + ("\n\n" if document.strip() else "") + block + "\n"
+
+
+def write_report(results_dir: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
+    """
+    Rebuild the generated part of ``out`` (and its figures in ``figures/`` beside it) from ``results_dir``.
+
+    :param results_dir: root of the results layout
+    :param out: the markdown file (created if missing; its text outside the markers is kept)
+    :return: the path written
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figures_dir = out.parent / "figures"
+    figures_dir.mkdir(parents=True, exist_ok=True)
+    generated = build_report(results_dir, figures_dir, "figures")
+    document = out.read_text() if out.is_file() else "# Results\n"
+    out.write_text(splice(document, generated))
+    return out

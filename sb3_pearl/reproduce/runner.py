@@ -1,0 +1,271 @@
+"""One reproduction run: build, learn, save, meta-test (held-out, shifted, training tasks), diagnose, write result.json.
+
+:func:`run_one` is what each child process of ``python -m sb3_pearl.reproduce run`` executes (through
+the internal ``run-one`` subcommand), with one torch thread.
+
+Test tasks and common random numbers: the held-out test tasks are ``sample_tasks(n_tasks, eval_seed)``
+of the family env, with the experiment's fixed ``eval_seed``, so every variant and every model seed
+is meta-tested on the same tasks; the meta-test runs with ``seed=eval_seed`` and
+``crn_seed=eval_seed`` (the same env reset seeds and prior draws for every model). Nothing is chosen
+on test tasks. The shifted meta-test draws its tasks the same way from the shifted env. The
+competence check runs on the model's first ``n_tasks`` *training* tasks.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
+
+import sb3_pearl  # noqa: F401  (registers the task families)
+from sb3_pearl.common.diagnostics import compute_diagnostics
+from sb3_pearl.common.meta_test import MetaTestResult, _json_value, meta_test
+from sb3_pearl.experiments import get_experiment
+from sb3_pearl.experiments.budgets import algo_class, check_constructor_kwargs, load_budget, model_kwargs
+from sb3_pearl.experiments.spec import Experiment, Family, Variant
+from sb3_pearl.reproduce.competence import evaluate_competence
+from sb3_pearl.reproduce.layout import (
+    MODEL_FILE,
+    RESULT_FILE,
+    RunKey,
+    cpu_info,
+    package_versions,
+    read_result,
+    run_dir,
+    write_json_atomic,
+)
+
+DIAGNOSED_ALGOS = ("pearl", "pearlplus")
+
+
+def run_kwargs(budget: dict[str, Any], variant: Variant, where: str) -> dict[str, Any]:
+    """
+    The constructor kwargs of a run: the budget's, with the variant's overrides on top (both checked).
+
+    :param budget: the loaded budget
+    :param variant: the variant
+    :param where: for the messages
+    :return: the kwargs as written (see :func:`~sb3_pearl.experiments.budgets.model_kwargs`)
+    """
+    overrides = dict(variant.overrides)
+    check_constructor_kwargs(variant.algo, overrides, f"{where} variant {variant.name} overrides")
+    return {**copy.deepcopy(budget["kwargs"]), **copy.deepcopy(overrides)}
+
+
+def spec_record(experiment: Experiment, family: Family, variant: Variant) -> dict[str, Any]:
+    """What result.json stores of the spec."""
+    return _json_value(
+        {
+            "experiment": {"name": experiment.name, "title": experiment.title, "eval_seed": experiment.eval_seed},
+            "family": {
+                "name": family.name,
+                "env_id": family.env_id,
+                "env_kwargs": dict(family.env_kwargs),
+                "shift_env_kwargs": dict(family.shift_env_kwargs) if family.shift_env_kwargs is not None else None,
+                "budget_family": family.budget_name,
+            },
+            "variant": {
+                "name": variant.name,
+                "label": variant.label,
+                "algo": variant.algo,
+                "overrides": dict(variant.overrides),
+            },
+        }
+    )
+
+
+def existing_result(path: Path, budget_preset: str) -> dict[str, Any] | None:
+    """
+    The complete result of a run folder, if any; an error if it was run with another budget preset.
+
+    :param path: the run folder
+    :param budget_preset: the preset of the requested run
+    :return: the result or None
+    """
+    result_path = path / RESULT_FILE
+    if not result_path.is_file():
+        return None
+    result = read_result(result_path)
+    if result.get("budget_preset") != budget_preset:
+        raise ValueError(
+            f"{result_path} was run with budget preset {result.get('budget_preset')!r}, not {budget_preset!r}: "
+            "use another --results-dir, or --force to replace it"
+        )
+    return result
+
+
+def _meta_test_record(result: MetaTestResult, seconds: float, env_kwargs: dict[str, Any]) -> dict[str, Any]:
+    record = result.to_dict()
+    record.pop("traces", None)
+    record.pop("paper", None)
+    record["wall_time_s"] = seconds
+    record["env_kwargs"] = env_kwargs
+    return record
+
+
+def _held_out_tasks(env: gym.Env, n_tasks: int, eval_seed: int, train_tasks: list[Any], what: str) -> list[Any]:
+    tasks = list(env.unwrapped.sample_tasks(n_tasks, eval_seed))  # type: ignore[attr-defined]
+    overlap = [task for task in tasks if task in train_tasks]
+    if overlap:
+        raise ValueError(f"{what}: {len(overlap)} test task(s) drawn with eval_seed {eval_seed} are training tasks")
+    return tasks
+
+
+def run_one(
+    experiment_name: str,
+    family_name: str,
+    variant_name: str,
+    seed: int,
+    budget_preset: str,
+    results_dir: str | Path,
+    verbose: int = 1,
+) -> dict[str, Any]:
+    """
+    Train, save and evaluate one (variant, seed) of an experiment; write its result.json last and atomically.
+
+    :param experiment_name: ``table1``, ``table2``, ``table3`` or ``safe-point``
+    :param family_name: a family of the experiment
+    :param variant_name: a variant of the experiment
+    :param seed: the model seed
+    :param budget_preset: ``smoke``, ``cpu`` or ``paper``
+    :param results_dir: root of the results layout
+    :param verbose: print progress
+    :return: the result written
+    """
+    th.set_num_threads(1)
+    experiment = get_experiment(experiment_name)
+    family, variant = experiment.family(family_name), experiment.variant(variant_name)
+    if seed == experiment.eval_seed:
+        raise ValueError(f"seed {seed} is the experiment's eval_seed: choose another model seed")
+    key = RunKey(experiment.name, family.name, variant.name, seed)
+    folder = run_dir(results_dir, key)
+    folder.mkdir(parents=True, exist_ok=True)
+    budget = load_budget(budget_preset, family.budget_name, variant.algo)
+    kwargs = run_kwargs(budget, variant, f"{key.label()} (preset {budget_preset})")
+    env_kwargs = dict(family.env_kwargs)
+    log = print if verbose else (lambda *args, **kw: None)
+    started = time.time()
+    cpu_start = cpu_info()
+
+    env = make_vec_env(family.env_id, n_envs=budget["n_envs"], seed=seed, env_kwargs=env_kwargs)
+    model = algo_class(variant.algo)(budget["policy"], env, seed=seed, verbose=0, device="auto", **model_kwargs(kwargs))
+    model.set_logger(configure(str(folder), ["csv"]))
+    log(f"[{key.label()}] learn {budget['n_timesteps']} steps", flush=True)
+    start = time.time()
+    model.learn(budget["n_timesteps"])
+    train_s = time.time() - start
+    model.save(folder / MODEL_FILE)
+    model.logger.close()
+    env.close()
+    train_tasks = list(getattr(model, "train_tasks", []) or [])
+
+    settings = budget["meta_test"]
+    eval_env = gym.make(family.env_id, **env_kwargs)
+    tasks = _held_out_tasks(eval_env, settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
+    log(f"[{key.label()}] meta-test {settings}", flush=True)
+    start = time.time()
+    held_out = meta_test(
+        model,
+        eval_env,
+        tasks,
+        n_adapt=settings["n_adapt"],
+        n_repeats=settings["n_repeats"],
+        deterministic=settings["deterministic"],
+        seed=experiment.eval_seed,
+        trace_keys=(),
+        crn_seed=experiment.eval_seed,
+    )
+    meta_test_s = time.time() - start
+    timings = {"train": train_s, "meta_test": meta_test_s}
+
+    shift = None
+    if family.shift_env_kwargs is not None:
+        shift_settings = budget["shift_meta_test"]
+        shift_kwargs = {**env_kwargs, **dict(family.shift_env_kwargs)}
+        shift_env = gym.make(family.env_id, **shift_kwargs)
+        shift_tasks = _held_out_tasks(shift_env, shift_settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
+        log(f"[{key.label()}] shifted meta-test {shift_settings}", flush=True)
+        start = time.time()
+        shifted = meta_test(
+            model,
+            shift_env,
+            shift_tasks,
+            n_adapt=shift_settings["n_adapt"],
+            n_repeats=shift_settings["n_repeats"],
+            deterministic=shift_settings["deterministic"],
+            seed=experiment.eval_seed,
+            trace_keys=(),
+            crn_seed=experiment.eval_seed,
+        )
+        timings["shift"] = time.time() - start
+        shift = _meta_test_record(shifted, timings["shift"], shift_kwargs)
+        shift_env.close()
+
+    competence: dict[str, Any] = {"skipped": "the model has no training tasks"}
+    if train_tasks:
+        comp_settings = budget["competence_meta_test"]
+        start = time.time()
+        on_train = meta_test(
+            model,
+            eval_env,
+            train_tasks[: comp_settings["n_tasks"]],
+            n_adapt=comp_settings["n_adapt"],
+            n_repeats=comp_settings["n_repeats"],
+            deterministic=comp_settings["deterministic"],
+            seed=experiment.eval_seed,
+            trace_keys=family.trace_keys(),
+            crn_seed=experiment.eval_seed,
+        )
+        timings["competence"] = time.time() - start
+        competence = {
+            **evaluate_competence(on_train, family.competence),
+            "settings": comp_settings,
+            "summary": on_train.summary,
+        }
+
+    diagnostics: dict[str, Any]
+    if variant.algo in DIAGNOSED_ALGOS:
+        start = time.time()
+        try:
+            diagnostics = compute_diagnostics(model, eval_env, seed=seed)
+        except Exception:  # a diagnostics bug must not throw away a trained and meta-tested run
+            diagnostics = {"error": traceback.format_exc()}
+            log(f"[{key.label()}] diagnostics failed:\n{diagnostics['error']}", flush=True)
+        timings["diagnostics"] = time.time() - start
+    else:
+        diagnostics = {"skipped": f"diagnostics apply to PEARL / PEARL+, not {variant.algo}"}
+    eval_env.close()
+    timings["total"] = time.time() - started
+
+    result = _json_value(
+        {
+            "experiment": experiment.name,
+            "family": family.name,
+            "variant": variant.name,
+            "seed": seed,
+            "budget_preset": budget_preset,
+            "spec": spec_record(experiment, family, variant),
+            "budget": budget,
+            "model_kwargs": kwargs,
+            "eval_seed": experiment.eval_seed,
+            "versions": package_versions(),
+            "cpu": {**cpu_start, "load_average_end": cpu_info()["load_average"]},
+            "wall_time_s": timings,
+            "num_timesteps": int(model.num_timesteps),
+            "device": str(model.device),
+            "meta_test": _meta_test_record(held_out, meta_test_s, env_kwargs),
+            "shift": shift,
+            "competence": competence,
+            "diagnostics": diagnostics,
+        }
+    )
+    write_json_atomic(folder / RESULT_FILE, result)
+    log(f"[{key.label()}] done in {timings['total']:.0f} s: {folder / RESULT_FILE}", flush=True)
+    return result

@@ -1,0 +1,173 @@
+"""Runs of an experiment as separate processes, ``jobs`` at a time, with a progress line and an ETA per finished run.
+
+Every (family, variant, seed) is its own child process (``python -m sb3_pearl.reproduce run-one``)
+with ``OMP_NUM_THREADS=1`` / ``MKL_NUM_THREADS=1`` (and one torch thread inside), its stdout and
+stderr in the run folder's ``run.log``. A run whose ``result.json`` exists is skipped unless
+``force``; a run whose result was written with another budget preset is an error.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import BinaryIO
+
+from sb3_pearl.experiments.budgets import load_budget
+from sb3_pearl.experiments.spec import Experiment
+from sb3_pearl.reproduce.layout import LOG_FILE, RESULT_FILE, RunKey, run_dir
+from sb3_pearl.reproduce.runner import existing_result, run_kwargs
+
+
+@dataclass
+class RunSummary:
+    """What :func:`run_experiment` did."""
+
+    done: list[RunKey] = field(default_factory=list)
+    skipped: list[RunKey] = field(default_factory=list)
+    failed: list[RunKey] = field(default_factory=list)
+
+
+def plan_runs(
+    experiment: Experiment,
+    budget_preset: str,
+    seeds: Sequence[int],
+    families: Sequence[str] | None = None,
+    variants: Sequence[str] | None = None,
+) -> list[RunKey]:
+    """
+    The runs of an experiment, every budget and variant override checked before anything starts.
+
+    :param experiment: the experiment
+    :param budget_preset: the budget preset
+    :param seeds: model seeds
+    :param families: family names (None: all of the experiment's)
+    :param variants: variant names (None: all)
+    :return: the runs, family by family, variant by variant, seed by seed
+    """
+    chosen_families = [experiment.family(name) for name in families] if families else list(experiment.families)
+    chosen_variants = [experiment.variant(name) for name in variants] if variants else list(experiment.variants)
+    if not seeds:
+        raise ValueError("no seeds to run")
+    bad = [s for s in seeds if s == experiment.eval_seed or s < 0]
+    if bad:
+        raise ValueError(
+            f"seeds {bad} are not allowed: model seeds must be >= 0 and differ from eval_seed {experiment.eval_seed}"
+        )
+    runs: list[RunKey] = []
+    for family in chosen_families:
+        for variant in chosen_variants:
+            budget = load_budget(budget_preset, family.budget_name, variant.algo)
+            run_kwargs(budget, variant, f"{experiment.name} {family.name} (preset {budget_preset})")
+            runs.extend(RunKey(experiment.name, family.name, variant.name, seed) for seed in seeds)
+    return runs
+
+
+def _format_duration(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    seconds = int(round(seconds))
+    hours, rest = divmod(seconds, 3600)
+    minutes, secs = divmod(rest, 60)
+    return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{secs:02d}s"
+
+
+def child_command(key: RunKey, budget_preset: str, results_dir: str | os.PathLike[str]) -> list[str]:
+    """The command line of one run's child process."""
+    return [
+        sys.executable,
+        "-m",
+        "sb3_pearl.reproduce",
+        "run-one",
+        *("--experiment", key.experiment, "--family", key.family, "--variant", key.variant),
+        *("--seed", str(key.seed), "--budget", budget_preset, "--results-dir", str(results_dir)),
+    ]
+
+
+def run_experiment(
+    experiment: Experiment,
+    budget_preset: str,
+    seeds: Sequence[int],
+    results_dir: str | os.PathLike[str],
+    jobs: int = 1,
+    families: Sequence[str] | None = None,
+    variants: Sequence[str] | None = None,
+    force: bool = False,
+    echo: Callable[[str], None] = print,
+    poll_s: float = 0.5,
+) -> RunSummary:
+    """
+    Run every planned (family, variant, seed) as a child process, ``jobs`` at a time.
+
+    :param experiment: the experiment
+    :param budget_preset: ``smoke``, ``cpu`` or ``paper``
+    :param seeds: model seeds
+    :param results_dir: root of the results layout
+    :param jobs: runs at a time
+    :param families: family names (None: all)
+    :param variants: variant names (None: all)
+    :param force: rerun runs that have a result.json
+    :param echo: where progress lines go
+    :param poll_s: seconds between checks of the running children
+    :return: the runs done, skipped and failed
+    """
+    if jobs < 1:
+        raise ValueError(f"--jobs must be >= 1, got {jobs}")
+    summary = RunSummary()
+    pending: list[RunKey] = []
+    for key in plan_runs(experiment, budget_preset, seeds, families, variants):
+        folder = run_dir(results_dir, key)
+        if not force and existing_result(folder, budget_preset) is not None:
+            summary.skipped.append(key)
+            echo(f"skip {key.label()}: {folder / RESULT_FILE} exists (--force reruns it)")
+            continue
+        pending.append(key)
+    total = len(pending)
+    echo(f"{experiment.name}: {total} run(s) to do, {len(summary.skipped)} skipped, budget {budget_preset}, {jobs} at a time")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    running: dict[RunKey, tuple[subprocess.Popen[bytes], float, BinaryIO]] = {}
+    durations: list[float] = []
+    started = time.time()
+    queue = list(pending)
+    while queue or running:
+        while queue and len(running) < jobs:
+            key = queue.pop(0)
+            folder = run_dir(results_dir, key)
+            folder.mkdir(parents=True, exist_ok=True)
+            if force and (folder / RESULT_FILE).exists():
+                (folder / RESULT_FILE).unlink()  # the folder is incomplete until the rerun writes it again
+            log = open(folder / LOG_FILE, "wb")  # noqa: SIM115  (closed when the child ends)
+            process = subprocess.Popen(
+                child_command(key, budget_preset, results_dir), stdout=log, stderr=subprocess.STDOUT, env=env
+            )
+            running[key] = (process, time.time(), log)
+        finished = [key for key, (process, _, _) in running.items() if process.poll() is not None]
+        if not finished:
+            time.sleep(poll_s)
+            continue
+        for key in finished:
+            process, start, log_file = running.pop(key)
+            log_file.close()
+            elapsed = time.time() - start
+            folder = run_dir(results_dir, key)
+            ok = process.returncode == 0 and (folder / RESULT_FILE).is_file()
+            (summary.done if ok else summary.failed).append(key)
+            if ok:
+                durations.append(elapsed)
+            n_finished = len(summary.done) + len(summary.failed)
+            remaining = total - n_finished
+            mean = sum(durations) / len(durations) if durations else math.nan
+            eta = math.ceil(remaining / jobs) * mean if remaining else 0.0
+            status = "done" if ok else f"FAILED (exit {process.returncode}, see {folder / LOG_FILE})"
+            echo(
+                f"[{n_finished}/{total}] {key.label()}: {status} in {_format_duration(elapsed)}; "
+                f"elapsed {_format_duration(time.time() - started)}, ETA {_format_duration(eta)}"
+            )
+    return summary
+
+
+__all__ = ["RunSummary", "child_command", "plan_runs", "run_experiment"]

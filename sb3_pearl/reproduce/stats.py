@@ -1,0 +1,212 @@
+"""Statistics of the reproduction report: t intervals over seeds, paired differences and the verdict rule.
+
+The unit of replication is the model seed: every seed of a variant is one independent training run,
+and its meta-test gives one violation rate and one mean return per k. Intervals over seeds are
+Student t intervals. Comparisons between two variants are *paired* over seeds: seed s of both
+variants is meta-tested on the same test tasks with the same env seeds and prior draws (common
+random numbers, ``crn_seed``), so the per-seed difference removes the test-set noise they share.
+
+The verdict rule (docs/reproduce.md, written before any run), on the 95% t interval [lo, hi] of the
+mean paired difference d = variant - reference, with the claim's margin m > 0:
+
+- fewer than 2 seeds in common, or no interval: **inconclusive**;
+- ``lower``: **reproduced** if hi < 0 and lo <= -m (below zero, and not confined to a negligible
+  effect); **not reproduced** if lo > 0 (the other direction) or -m < lo and hi < m (any effect is
+  smaller than the margin); otherwise **inconclusive**;
+- ``higher``: the mirror image;
+- ``equal``: **reproduced** if -m < lo and hi < m; **not reproduced** if lo >= m or hi <= -m;
+  otherwise **inconclusive**;
+- ``not_lower`` (non-inferiority): **reproduced** if lo > -m; **not reproduced** if hi < -m;
+  otherwise **inconclusive**; ``not_higher``: the mirror image.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+REPRODUCED = "reproduced"
+NOT_REPRODUCED = "not reproduced"
+INCONCLUSIVE = "inconclusive"
+VERDICTS = (REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE)
+
+
+class Interval(NamedTuple):
+    """A mean with its confidence interval over ``n`` values (``low`` / ``high`` nan when ``n < 2``)."""
+
+    mean: float
+    low: float
+    high: float
+    n: int
+
+
+def _betacf(a: float, b: float, x: float) -> float:
+    """Continued fraction of the regularised incomplete beta function (modified Lentz)."""
+    tiny = 1e-300
+    qab, qap, qam = a + b, a + 1.0, a - 1.0
+    c, d = 1.0, 1.0 - qab * x / qap
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 500):
+        m2 = 2 * m
+        aa = m * (b - m) * x / ((qam + m2) * (a + m2))
+        d = 1.0 + aa * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + aa / c
+        c = c if abs(c) > tiny else tiny
+        h *= d * c
+        aa = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))
+        d = 1.0 + aa * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + aa / c
+        c = c if abs(c) > tiny else tiny
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < 1e-15:
+            break
+    return h
+
+
+def incomplete_beta(a: float, b: float, x: float) -> float:
+    """
+    Regularised incomplete beta function I_x(a, b).
+
+    :param a: first shape (> 0)
+    :param b: second shape (> 0)
+    :param x: in [0, 1]
+    :return: I_x(a, b)
+    """
+    if not 0.0 <= x <= 1.0:
+        raise ValueError(f"incomplete_beta: x must be in [0, 1], got {x}")
+    if x in (0.0, 1.0):
+        return x
+    log_front = math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x)
+    if x < (a + 1.0) / (a + b + 2.0):
+        return math.exp(log_front) * _betacf(a, b, x) / a
+    return 1.0 - math.exp(log_front) * _betacf(b, a, 1.0 - x) / b
+
+
+def t_cdf(t: float, df: float) -> float:
+    """
+    Cumulative distribution function of Student's t.
+
+    :param t: the value
+    :param df: degrees of freedom (> 0)
+    :return: P(T <= t)
+    """
+    if df <= 0:
+        raise ValueError(f"t_cdf: df must be > 0, got {df}")
+    tail = 0.5 * incomplete_beta(df / 2.0, 0.5, df / (df + t * t))
+    return 1.0 - tail if t > 0 else tail
+
+
+def t_quantile(p: float, df: float) -> float:
+    """
+    Quantile of Student's t (bisection on :func:`t_cdf`).
+
+    :param p: probability in (0, 1)
+    :param df: degrees of freedom (> 0)
+    :return: t with P(T <= t) = p
+    """
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"t_quantile: p must be in (0, 1), got {p}")
+    if p < 0.5:
+        return -t_quantile(1.0 - p, df)
+    low, high = 0.0, 1.0
+    while t_cdf(high, df) < p:
+        high *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (low + high)
+        if t_cdf(mid, df) < p:
+            low = mid
+        else:
+            high = mid
+    return 0.5 * (low + high)
+
+
+def t_interval(values: Sequence[float] | np.ndarray, confidence: float = 0.95) -> Interval:
+    """
+    Student t interval of the mean of ``values`` (independent replications, e.g. one per seed).
+
+    :param values: the values (nan values are an error: drop them first)
+    :param confidence: coverage of the interval
+    :return: mean, low, high, n; the bounds are nan for fewer than 2 values
+    """
+    array = np.asarray(values, dtype=np.float64)
+    if np.isnan(array).any():
+        raise ValueError("t_interval: nan among the values")
+    n = int(array.size)
+    if n == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    mean = float(array.mean())
+    if n < 2:
+        return Interval(mean, math.nan, math.nan, n)
+    half = t_quantile(0.5 + confidence / 2.0, n - 1) * float(array.std(ddof=1)) / math.sqrt(n)
+    return Interval(mean, mean - half, mean + half, n)
+
+
+def paired_differences(variant: Mapping[int, float], reference: Mapping[int, float]) -> dict[int, float]:
+    """
+    Per-seed differences ``variant - reference`` over the seeds both have.
+
+    :param variant: value per seed
+    :param reference: value per seed
+    :return: difference per common seed, in seed order
+    """
+    return {seed: float(variant[seed]) - float(reference[seed]) for seed in sorted(set(variant) & set(reference))}
+
+
+def verdict(interval: Interval, direction: str, margin: float) -> str:
+    """
+    The verdict of a claim from the interval of the paired difference (module docstring).
+
+    :param interval: 95% t interval of the mean difference variant - reference
+    :param direction: ``lower``, ``higher``, ``equal``, ``not_lower`` or ``not_higher``
+    :param margin: equivalence margin (> 0), in the metric's units
+    :return: ``"reproduced"``, ``"not reproduced"`` or ``"inconclusive"``
+    """
+    if margin <= 0:
+        raise ValueError(f"verdict: margin must be > 0, got {margin}")
+    if direction in ("higher", "not_higher"):  # mirror onto lower / not_lower
+        interval = Interval(-interval.mean, -interval.high, -interval.low, interval.n)
+        direction = {"higher": "lower", "not_higher": "not_lower"}[direction]
+    lo, hi = interval.low, interval.high
+    if interval.n < 2 or not (math.isfinite(lo) and math.isfinite(hi)):
+        return INCONCLUSIVE
+    if direction == "lower":
+        if hi < 0 and lo <= -margin:
+            return REPRODUCED
+        if lo > 0 or (-margin < lo and hi < margin):
+            return NOT_REPRODUCED
+        return INCONCLUSIVE
+    if direction == "equal":
+        if -margin < lo and hi < margin:
+            return REPRODUCED
+        if lo >= margin or hi <= -margin:
+            return NOT_REPRODUCED
+        return INCONCLUSIVE
+    if direction == "not_lower":
+        if lo > -margin:
+            return REPRODUCED
+        if hi < -margin:
+            return NOT_REPRODUCED
+        return INCONCLUSIVE
+    raise ValueError(f"verdict: unknown direction {direction!r}")
+
+
+__all__ = [
+    "INCONCLUSIVE",
+    "NOT_REPRODUCED",
+    "REPRODUCED",
+    "VERDICTS",
+    "Interval",
+    "incomplete_beta",
+    "paired_differences",
+    "t_cdf",
+    "t_interval",
+    "t_quantile",
+    "verdict",
+]

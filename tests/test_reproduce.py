@@ -1,0 +1,355 @@
+"""The reproduction harness: the CLI end to end on the smoke budget, the statistics, the presets and the specs."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sb3_pearl import PEARLPlus
+from sb3_pearl.common.meta_test import MetaTestResult
+from sb3_pearl.experiments import EXPERIMENTS, get_experiment
+from sb3_pearl.experiments.budgets import (
+    PRESETS,
+    check_preset,
+    check_statistics_floor,
+    load_budget,
+    model_kwargs,
+    validate_entry,
+)
+from sb3_pearl.experiments.spec import Claim, Criterion, Experiment, PaperCell, Variant, claims_from_paper, resolve_k
+from sb3_pearl.reproduce.competence import criterion_value, evaluate_competence
+from sb3_pearl.reproduce.layout import RESULT_KEYS, parse_seeds
+from sb3_pearl.reproduce.report import BEGIN, END, splice
+from sb3_pearl.reproduce.stats import (
+    INCONCLUSIVE,
+    NOT_REPRODUCED,
+    REPRODUCED,
+    Interval,
+    paired_differences,
+    t_interval,
+    t_quantile,
+    verdict,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+RUN_ARGS = ["safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0", "alpha-0.1"]
+
+
+def reproduce(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    proc = subprocess.run(
+        [sys.executable, "-m", "sb3_pearl.reproduce", *args], capture_output=True, text=True, env=env, timeout=timeout
+    )
+    assert proc.returncode == 0, f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
+    return proc
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two smoke runs of the fast family (alpha 0 and 0.1, seed 0), run once for the module."""
+    results_dir = tmp_path_factory.mktemp("results")
+    out = reproduce("run", *RUN_ARGS, "--jobs", "2", "--results-dir", str(results_dir)).stdout
+    assert "[2/2]" in out and "ETA" in out and "2 done, 0 skipped, 0 failed" in out
+    return results_dir
+
+
+def run_folder(results_dir: Path, variant: str) -> Path:
+    return results_dir / "safe-point" / "safe-point" / variant / "seed0"
+
+
+# ----------------------------------------------------------------------------------------------
+# CLI end to end
+# ----------------------------------------------------------------------------------------------
+def test_run_writes_the_layout(results: Path) -> None:
+    import json
+
+    for variant in ("alpha-0", "alpha-0.1"):
+        folder = run_folder(results, variant)
+        result = json.loads((folder / "result.json").read_text())
+        assert set(RESULT_KEYS) <= set(result)
+        assert (result["experiment"], result["family"], result["variant"], result["seed"]) == (
+            "safe-point",
+            "safe-point",
+            variant,
+            0,
+        )
+        assert result["budget_preset"] == "smoke" and result["eval_seed"] == get_experiment("safe-point").eval_seed
+        assert result["model_kwargs"]["prior_coef"] == float(variant.split("-")[1])
+        settings = result["budget"]["meta_test"]
+        assert len(result["meta_test"]["rows"]) == settings["n_tasks"] * settings["n_repeats"] * (settings["n_adapt"] + 1)
+        assert [entry["k"] for entry in result["meta_test"]["summary"]] == list(range(settings["n_adapt"] + 1))
+        assert result["meta_test"]["config"]["crn_seed"] == result["eval_seed"]
+        assert result["shift"] is None  # the fast family declares no shifted distribution
+        assert {"train", "meta_test", "total"} <= set(result["wall_time_s"])
+        assert result["versions"]["torch"] and result["cpu"]["cores"] >= 1
+        assert "passed" in result["competence"] and result["competence"]["criteria"][0]["key"] == "distance"
+        assert "error" not in result["diagnostics"] and "overlap" in result["diagnostics"]
+        model = PEARLPlus.load(folder / "model.zip", device="cpu")
+        assert model.prior_coef == result["model_kwargs"]["prior_coef"]
+        with open(folder / "progress.csv") as file:
+            rows = list(csv.DictReader(file))
+        assert rows and "train/critic_loss" in rows[0] and "time/total_timesteps" in rows[0]
+    # CRN: both variants saw the same test tasks
+    tasks = [
+        json.loads((run_folder(results, v) / "result.json").read_text())["meta_test"]["tasks"]
+        for v in ("alpha-0", "alpha-0.1")
+    ]
+    assert tasks[0] == tasks[1]
+
+
+def test_run_is_idempotent_and_force_reruns(results: Path) -> None:
+    path = run_folder(results, "alpha-0") / "result.json"
+    before = path.stat().st_mtime_ns
+    out = reproduce("run", *RUN_ARGS, "--results-dir", str(results)).stdout
+    assert out.count("skip ") == 2 and "0 done, 2 skipped" in out
+    assert path.stat().st_mtime_ns == before
+    args = [a for a in RUN_ARGS if a != "alpha-0.1"]
+    out = reproduce("run", *args, "--force", "--results-dir", str(results)).stdout
+    assert "1 done, 0 skipped" in out
+    assert path.stat().st_mtime_ns != before
+
+
+def test_report_builds_tables_and_figures(results: Path, tmp_path: Path) -> None:
+    out = tmp_path / "docs" / "results.md"
+    out.parent.mkdir()
+    out.write_text("# Results\n\nHand-written preamble.\n\n" + BEGIN + "\nold\n" + END + "\n\nHand-written tail.\n")
+    reproduce("report", "--results-dir", str(results), "--out", str(out))
+    text = out.read_text()
+    assert text.startswith("# Results\n\nHand-written preamble.") and text.rstrip().endswith("Hand-written tail.")
+    assert "old" not in text.split(BEGIN)[1].split(END)[0]
+    assert "| PEARL+ (alpha 0) | 0 |" in text and "| PEARL+ (alpha 0.1) | 2 |" in text
+    assert "violation PEARL+ (alpha 0.1) < PEARL+ (alpha 0)" in text and "**inconclusive**" in text  # one seed
+    figure = out.parent / "figures" / "reproduce_safe-point_safe-point_smoke.png"
+    assert figure.is_file() and figure.stat().st_size > 1000
+    assert "figures/reproduce_safe-point_safe-point_smoke.png" in text
+
+
+def test_run_rejects_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from sb3_pearl.reproduce.cli import main
+
+    for args, message in (
+        (["run", "safe-point", "--budget", "smoke", "--family", "nope"], "has no family 'nope'"),
+        (["run", "safe-point", "--budget", "smoke", "--variants", "pearl"], "has no variant 'pearl'"),
+        (["run", "safe-point", "--budget", "smoke", "--seeds", "3-1"], "empty range"),
+        (["run", "safe-point", "--budget", "smoke", "--seeds", "10004"], "differ from eval_seed 10004"),
+    ):
+        assert main([*args, "--results-dir", str(tmp_path)]) == 2
+        assert message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing started
+
+
+def test_run_refuses_a_result_of_another_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from sb3_pearl.reproduce.cli import main
+    from sb3_pearl.reproduce.layout import write_json_atomic
+
+    folder = run_folder(tmp_path, "alpha-0")
+    folder.mkdir(parents=True)
+    write_json_atomic(folder / "result.json", {"budget_preset": "cpu"})
+    assert main(["run", *RUN_ARGS[:-1], "--results-dir", str(tmp_path)]) == 2
+    assert "was run with budget preset 'cpu', not 'smoke'" in capsys.readouterr().err
+    assert sorted(p.name for p in folder.iterdir()) == ["result.json"]  # atomic write left no temporary file
+
+
+def test_run_dry_run_lists_the_plan(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from sb3_pearl.reproduce.cli import main
+
+    assert main(["run", "table2", "--budget", "cpu", "--seeds", "0-1", "--family", "highway-merge", "--dry-run"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 4 * 2 and lines[0].startswith("table2 highway-merge pearl seed0: pearl, ")
+
+
+# ----------------------------------------------------------------------------------------------
+# Statistics
+# ----------------------------------------------------------------------------------------------
+def test_t_quantile_and_interval_by_hand() -> None:
+    for df, expected in ((1, 12.7062), (3, 3.1824), (9, 2.2622), (30, 2.0423)):
+        assert t_quantile(0.975, df) == pytest.approx(expected, abs=1e-4)
+    assert t_quantile(0.025, 3) == pytest.approx(-3.1824, abs=1e-4)
+    # [1, 2, 3, 4]: mean 2.5, sd sqrt(5/3), half-width 3.1824 * 1.2910 / 2 = 2.0543
+    interval = t_interval([1.0, 2.0, 3.0, 4.0])
+    assert interval.mean == 2.5 and interval.n == 4
+    assert interval.low == pytest.approx(0.4457, abs=1e-4) and interval.high == pytest.approx(4.5543, abs=1e-4)
+    single = t_interval([0.3])
+    assert single.mean == 0.3 and math.isnan(single.low) and math.isnan(single.high)
+    assert tuple(t_interval([0.2, 0.2, 0.2])) == pytest.approx((0.2, 0.2, 0.2, 3))
+
+
+def test_paired_differences_use_common_seeds() -> None:
+    assert paired_differences({0: 0.1, 1: 0.2, 3: 0.5}, {0: 0.3, 1: 0.2, 2: 0.9}) == pytest.approx({0: -0.2, 1: 0.0})
+
+
+@pytest.mark.parametrize(
+    "direction, low, high, expected",
+    [
+        ("lower", -0.40, -0.10, REPRODUCED),
+        ("lower", 0.02, 0.20, NOT_REPRODUCED),  # the other direction
+        ("lower", -0.03, 0.02, NOT_REPRODUCED),  # any effect smaller than the margin
+        ("lower", -0.04, -0.01, NOT_REPRODUCED),  # significant but negligible
+        ("lower", -0.30, 0.10, INCONCLUSIVE),
+        ("higher", 0.10, 0.40, REPRODUCED),
+        ("higher", -0.20, -0.02, NOT_REPRODUCED),
+        ("higher", -0.10, 0.30, INCONCLUSIVE),
+        ("equal", -0.02, 0.03, REPRODUCED),
+        ("equal", 0.06, 0.20, NOT_REPRODUCED),
+        ("equal", -0.02, 0.10, INCONCLUSIVE),
+        ("not_lower", -0.04, 0.50, REPRODUCED),
+        ("not_lower", -0.50, -0.06, NOT_REPRODUCED),
+        ("not_lower", -0.10, 0.10, INCONCLUSIVE),
+        ("not_higher", -0.50, 0.04, REPRODUCED),
+        ("not_higher", 0.06, 0.50, NOT_REPRODUCED),
+        ("not_higher", -0.10, 0.10, INCONCLUSIVE),
+    ],
+)
+def test_verdict_rule(direction: str, low: float, high: float, expected: str) -> None:
+    assert verdict(Interval(0.5 * (low + high), low, high, 4), direction, margin=0.05) == expected
+
+
+def test_verdict_needs_two_seeds_and_a_margin() -> None:
+    assert verdict(Interval(-0.5, math.nan, math.nan, 1), "lower", 0.05) == INCONCLUSIVE
+    assert verdict(t_interval([0.0, 0.0, 0.0]), "equal", 0.05) == REPRODUCED  # both never violate
+    with pytest.raises(ValueError, match="margin"):
+        verdict(Interval(0.0, -1.0, 1.0, 3), "lower", 0.0)
+    with pytest.raises(ValueError, match="direction"):
+        verdict(Interval(0.0, -1.0, 1.0, 3), "sideways", 0.05)
+
+
+# ----------------------------------------------------------------------------------------------
+# Presets
+# ----------------------------------------------------------------------------------------------
+def test_presets_load() -> None:
+    for preset in PRESETS:
+        assert check_preset(preset) >= 16  # 4 families x 4 algorithms
+    budget = load_budget("cpu", "safe-point", "pearlplus")
+    assert budget["n_timesteps"] >= 90_000 and budget["kwargs"]["prior_coef"] == 0.1
+    assert budget["meta_test"]["n_repeats"] >= 10 and budget["meta_test"]["n_tasks"] * budget["meta_test"]["n_repeats"] >= 200
+    assert budget["competence_meta_test"]["n_tasks"] >= 1
+    maml = model_kwargs(load_budget("cpu", "walker2d-vel", "maml")["kwargs"])
+    assert maml["policy_kwargs"]["activation_fn"].__name__ == "Tanh"
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("gpu", "safe-point", "pearl"), "unknown budget preset 'gpu'"),
+        (("cpu", "cheetah", "pearl"), "has no family 'cheetah'"),
+        (("cpu", "safe-point", "sac"), "has no algorithm 'sac'"),
+    ],
+)
+def test_presets_reject_unknown_names(args: tuple[str, str, str], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        load_budget(*args)
+
+
+def test_preset_entry_validation() -> None:
+    good: dict[str, Any] = {"n_timesteps": 1000, "kwargs": {"batch_size": 16}, "meta_test": {"n_tasks": 20, "n_repeats": 10}}
+    assert validate_entry(good, "pearl", "test")["meta_test"]["n_adapt"] == 5
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['n_steps'\]"):
+        validate_entry({**good, "n_steps": 5}, "pearl", "test")
+    with pytest.raises(ValueError, match=r"PEARL does not take \['prior_coef'\]"):
+        validate_entry({**good, "kwargs": {"prior_coef": 0.1}}, "pearl", "test")
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['n_task'\]"):
+        validate_entry({**good, "meta_test": {"n_task": 3}}, "pearl", "test")
+    with pytest.raises(ValueError, match="activation_fn"):
+        validate_entry({**good, "kwargs": {"policy_kwargs": {"activation_fn": "swish"}}}, "pearl", "test")
+    with pytest.raises(ValueError, match="n_timesteps must be a positive integer"):
+        validate_entry({**good, "n_timesteps": 0}, "pearl", "test")
+    with pytest.raises(ValueError, match=r"n_repeats >= 10 prior draws per test task .* got 40 x 5"):
+        check_statistics_floor({"n_tasks": 40, "n_repeats": 5}, (10, 200), "test")
+    with pytest.raises(ValueError, match=r">= 200 k = 0 trajectories, got 10 x 10"):
+        check_statistics_floor({"n_tasks": 10, "n_repeats": 10}, (10, 200), "test")
+
+
+# ----------------------------------------------------------------------------------------------
+# Specs
+# ----------------------------------------------------------------------------------------------
+def test_experiments_are_declared() -> None:
+    assert set(EXPERIMENTS) == {"table1", "table2", "table3", "safe-point"}
+    table1 = get_experiment("table1")
+    assert {f.name for f in table1.families} == {"walker2d-vel", "ant3d-vel", "highway-merge"}
+    assert {v.algo for v in table1.variants} == {"pearl", "pearlplus", "finetune", "maml"}
+    assert table1.paper_value("walker2d-vel", "pearl", "violation", 0, 5).value == pytest.approx(0.607)  # type: ignore[union-attr]
+    table2 = get_experiment("table2")
+    assert table2.variant("pearlplus-wo").overrides["prior_critic"] == "shared"
+    assert table2.variant("pearlplus-100").overrides["prior_critic_arch"] == [100, 100, 100]
+    assert table2.paper_value("highway-merge", "pearl", "return", 5, 5).value == -33.44 + 100.72  # type: ignore[union-attr]
+    table3 = get_experiment("table3")
+    assert table3.paper_value("highway-merge", "alpha-0.01", "violation", 0, 5).value == pytest.approx(0.35)  # type: ignore[union-attr]
+    safe = get_experiment("safe-point")
+    assert [f.name for f in safe.families] == ["safe-point", "safe-point-crash5"]
+    assert safe.family("safe-point-crash5").env_kwargs == {"crash_penalty": 5.0}
+    assert {v.overrides["prior_coef"] for v in safe.variants} == {0.0, 0.1, 1.0, 5.0}
+    assert resolve_k(-1, 5) == 5 and resolve_k(3, 5) == 3
+
+
+def test_spec_validation_errors() -> None:
+    pearl = Variant("pearl", "PEARL", "pearl")
+    family = get_experiment("table3").families[0]
+    with pytest.raises(ValueError, match="names an unknown family or variant"):
+        Experiment("x", "x", "x", (family,), (pearl,), claims=(Claim(family.name, "ghost", "pearl", "violation", 0, "lower"),))
+    with pytest.raises(ValueError, match="duplicated variant names"):
+        Experiment("x", "x", "x", (family,), (pearl, pearl))
+    with pytest.raises(ValueError, match="eval_seed"):
+        Experiment("x", "x", "x", (family,), (pearl,), seeds=(0, 7), eval_seed=7)
+    with pytest.raises(ValueError, match="unknown algo"):
+        Variant("sac", "SAC", "sac")
+    with pytest.raises(ValueError, match="results folder"):
+        Variant("PEARL plus", "PEARL+", "pearlplus")
+
+
+def test_claims_from_paper() -> None:
+    paper = (
+        PaperCell("f", "pearl", "violation", 0, 0.6),
+        PaperCell("f", "plus", "violation", 0, 0.0),
+        PaperCell("f", "pearl", "violation", 1, 0.03),
+        PaperCell("f", "plus", "violation", 1, 0.0),
+        PaperCell("f", "worse", "violation", 1, 0.2),
+    )
+    claims = {(c.variant, c.k): c.direction for c in claims_from_paper(paper, "pearl")}
+    assert claims == {("plus", 0): "lower", ("plus", 1): "equal", ("worse", 1): "higher"}
+
+
+# ----------------------------------------------------------------------------------------------
+# Small helpers
+# ----------------------------------------------------------------------------------------------
+def test_parse_seeds() -> None:
+    assert parse_seeds("0-3") == [0, 1, 2, 3]
+    assert parse_seeds("5,0-1,1") == [0, 1, 5]
+    with pytest.raises(ValueError, match="not a seed"):
+        parse_seeds("a")
+
+
+def test_splice_keeps_the_hand_written_text() -> None:
+    assert splice("# R\n\nintro\n", "gen") == f"# R\n\nintro\n\n{BEGIN}\ngen\n{END}\n"
+    assert splice(f"a\n{BEGIN}\nold\n{END}\nb\n", "new") == f"a\n{BEGIN}\nnew\n{END}\nb\n"
+    with pytest.raises(ValueError, match="only one of the markers"):
+        splice(f"a\n{BEGIN}\n", "new")
+
+
+def test_competence_criteria() -> None:
+    rows = [
+        {"task": 0, "repeat": 0, "k": 0, "violated": True, "merged": 0.0},
+        {"task": 0, "repeat": 0, "k": 1, "violated": False, "merged": 1.0},
+        {"task": 0, "repeat": 0, "k": 2, "violated": True, "merged": 0.0},
+    ]
+    traces = [
+        {"task": 0, "repeat": 0, "k": 0, "reward_forward": [-9.0]},
+        {"task": 0, "repeat": 0, "k": 1, "reward_forward": [-0.1, -0.3]},
+        {"task": 0, "repeat": 0, "k": 2, "reward_forward": [-0.2, -0.6]},
+    ]
+    result = MetaTestResult(rows=rows, summary=[], traces=traces)
+    error = Criterion("tracking error", "trace_mean", "reward_forward", 0.5, "lower", scale=-1.0)
+    last = Criterion("last", "trace_last", "reward_forward", 0.5, "lower", scale=-1.0)
+    merged = Criterion("merge rate", "row_mean", "merged", 0.9, "higher")
+    assert criterion_value(result, error) == pytest.approx(0.3)  # mean of 0.2 and 0.4, k = 0 left out
+    assert criterion_value(result, last) == pytest.approx(0.45)
+    assert criterion_value(result, merged) == pytest.approx(0.5)
+    outcome = evaluate_competence(result, (error, merged))
+    assert [c["passed"] for c in outcome["criteria"]] == [True, False] and outcome["passed"] is False
