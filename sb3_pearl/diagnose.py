@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import yaml
 from stable_baselines3.common.save_util import load_from_zip_file
 
 import sb3_pearl  # noqa: F401  (registers the envs)
@@ -36,6 +35,7 @@ from sb3_pearl.common.diagnostics import (
     format_diagnostics,
 )
 from sb3_pearl.pearl import PEARL, PEARLPlus
+from sb3_pearl.zoo.safe_config import load_run_yaml
 
 LAYOUT_HELP = (
     "expected a run folder with result.json and model.zip (reproduction harness: results/<exp>/<family>/<variant>/seed<N>/), "
@@ -82,8 +82,7 @@ def _zoo_env_kwargs(env_folder: Path) -> dict[str, Any]:
     args_path = env_folder / "args.yml"
     if not args_path.is_file():
         return {}
-    with open(args_path) as file:
-        saved = yaml.load(file, Loader=yaml.UnsafeLoader) or {}
+    saved = load_run_yaml(args_path) or {}  # never yaml.UnsafeLoader: a run folder is data
     return dict(saved.get("env_kwargs") or {})
 
 

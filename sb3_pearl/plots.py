@@ -25,6 +25,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from sb3_pearl.common.atomic import atomic_path  # noqa: E402
 from sb3_pearl.common.meta_test import PAPER_KS, MetaTestResult  # noqa: E402
 
 KINDS = ("adaptation", "violations", "b_min", "speed")
@@ -73,12 +74,15 @@ def _yerr(rate: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
 
 
 def _save(fig: Figure, path: str | os.PathLike[str], title: str = "") -> None:
-    """Lay out, title (if any), write and close a figure."""
+    """Lay out, title (if any), write (atomically) and close a figure."""
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def plot_adaptation(runs: Mapping[str, MetaTestResult], path: str | os.PathLike[str], title: str = "") -> None:

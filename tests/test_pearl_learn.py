@@ -204,7 +204,7 @@ def test_clear_errors(tiny_kwargs: dict[str, Any]) -> None:
         PEARLPlus("MlpPolicy", NoTaskEnv())
     with pytest.raises(ValueError, match="Box and Discrete"):
         PEARLPlus("MlpPolicy", MultiDiscretePoint())
-    with pytest.raises(ValueError, match="prior_coef must be >= 0"):
+    with pytest.raises(ValueError, match="prior_coef must be a finite number >= 0"):
         PEARLPlus("MlpPolicy", "PointGoalMeta-v0", prior_coef=-0.1)
     with pytest.raises(ValueError, match="unknown prior_critic mode 'both'"):
         PEARLPlus("MlpPolicy", "PointGoalMeta-v0", prior_critic="both")

@@ -72,8 +72,10 @@ def stored_action(action_space: spaces.Space, action: Any) -> np.ndarray:
     """
     The action passed to ``observe()`` (env units, as from ``predict``) as every algorithm stores it.
 
-    Box: clipped to the bounds and scaled to [-1, 1] (SB3's ``scale_action``), shape (action_dim,).
-    Discrete: the index as a one-element float array, shape (1,), checked to be in range.
+    Box: clipped to the bounds (as SB3 clips the actions it sends to the env; an action outside the box
+    is stored as the action the env executed) and scaled to [-1, 1] (SB3's ``scale_action``), shape
+    (action_dim,); a non-finite action raises. Discrete: the index as a one-element float array, shape (1,),
+    checked to be in range.
 
     :param action_space: the model's action space (Box or Discrete)
     :param action: the action
@@ -89,9 +91,27 @@ def stored_action(action_space: spaces.Space, action: Any) -> np.ndarray:
     env_action = np.asarray(action, dtype=np.float32)
     if env_action.size != int(np.prod(action_space.shape)):
         raise ValueError(f"observe(): expected one action of shape {action_space.shape}, got shape {env_action.shape}")
+    if not np.all(np.isfinite(env_action)):
+        raise ValueError(f"observe(): the action {env_action.tolist()} is not finite: pass the action sent to the env")
     low, high = action_space.low, action_space.high
     clipped = np.clip(env_action.reshape(action_space.shape), low, high)
     return (2.0 * ((clipped - low) / (high - low)) - 1.0).reshape(-1).astype(np.float32)
+
+
+def check_finite_transition(obs: Any, reward: Any, next_obs: Any) -> None:
+    """
+    Raise a clear error if an observed transition holds a non-finite value (it would poison the adaptation).
+
+    :param obs: observation passed to ``observe()``
+    :param reward: reward passed to ``observe()``
+    :param next_obs: next observation passed to ``observe()``
+    """
+    for name, value in (("obs", obs), ("reward", reward), ("next_obs", next_obs)):
+        if not np.all(np.isfinite(np.asarray(value, dtype=np.float64))):
+            raise ValueError(
+                f"observe(): {name} holds a non-finite value ({np.asarray(value).tolist()}): the env diverged or the "
+                "transition is corrupt; check the env (and its task) before adapting on it"
+            )
 
 
 def _missing_methods(obj: Any) -> list[str]:
@@ -122,4 +142,11 @@ def has_adaptation_api(algo_class: type) -> bool:
     return not _missing_methods(algo_class)
 
 
-__all__ = ["ADAPTATION_METHODS", "AdaptiveModel", "check_adaptive", "has_adaptation_api", "stored_action"]
+__all__ = [
+    "ADAPTATION_METHODS",
+    "AdaptiveModel",
+    "check_adaptive",
+    "check_finite_transition",
+    "has_adaptation_api",
+    "stored_action",
+]

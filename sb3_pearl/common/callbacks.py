@@ -7,10 +7,11 @@ import os
 from typing import Any
 
 import gymnasium as gym
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import check_adaptive
+from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.meta_test import MetaTestResult, get_test_tasks, meta_test
 from sb3_pearl.common.statistics import SUMMARY_COLUMNS
 from sb3_pearl.envs.task_protocol import Task
@@ -127,12 +128,17 @@ class MetaTestCallback(BaseCallback):
         return result
 
     def _append_history(self, result: MetaTestResult) -> None:
+        """Append this evaluation to ``meta_test_history.csv``: the file is rewritten atomically (a kill keeps it whole)."""
         assert self.log_path is not None
         path = os.path.join(self.log_path, "meta_test_history.csv")
-        new_file = not os.path.exists(path)
-        with open(path, "a", newline="") as file:
+        previous = ""
+        if os.path.exists(path):
+            with open(path, newline="") as file:
+                previous = file.read()
+        with atomic_write(path, "w", newline="") as file:
+            file.write(previous)
             writer = csv.DictWriter(file, fieldnames=["timesteps", *SUMMARY_COLUMNS], extrasaction="ignore")
-            if new_file:
+            if not previous:
                 writer.writeheader()
             for entry in result.summary:
                 writer.writerow({"timesteps": self.num_timesteps, **entry})
@@ -190,4 +196,61 @@ class MetaTestTrialCallback(MetaTestCallback):
         return True
 
 
-__all__ = ["MetaTestCallback", "MetaTestTrialCallback"]
+class ResumableCheckpointCallback(CheckpointCallback):
+    """
+    SB3's ``CheckpointCallback`` writing *resumable* checkpoints: the model zip (with every RNG state, see
+    :mod:`sb3_pearl.common.persistence`) and, for off-policy models, the replay buffer
+    (``<prefix>_replay_buffer_<steps>_steps.pkl``), saved at the next rollout start once ``save_freq`` calls
+    have passed instead of in the middle of one.
+
+    PEARL / PEARL+ and MAML call ``on_rollout_start`` at the start of an iteration, before they draw its tasks,
+    so ``train.py --resume`` of such a checkpoint continues bit for bit as the uninterrupted run
+    (docs/reliability.md). Fine-Tune's rollouts are single env steps: its checkpoints resume, but not exactly.
+
+    :param save_freq: save after this many calls (``on_step``, one per VecEnv step)
+    :param save_path: the folder
+    :param name_prefix: file name prefix
+    :param verbose: 1 prints each checkpoint's path
+    """
+
+    def __init__(self, save_freq: int, save_path: str, name_prefix: str = "rl_model", verbose: int = 0) -> None:
+        super().__init__(save_freq, save_path, name_prefix=name_prefix, save_replay_buffer=True, verbose=verbose)
+        self._due = False
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.save_freq == 0:
+            self._due = True
+        return True
+
+    def _on_rollout_start(self) -> None:
+        if not self._due:
+            return
+        self._due = False
+        model_path = self._checkpoint_path(extension="zip")
+        self.model.save(model_path)
+        paths = [model_path]
+        if getattr(self.model, "replay_buffer", None) is not None and hasattr(self.model, "save_replay_buffer"):
+            buffer_path = self._checkpoint_path("replay_buffer_", extension="pkl")
+            self.model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
+            paths.append(buffer_path)
+        if self.verbose >= 1:
+            print(f"Saving resumable checkpoint to {', '.join(paths)}")
+
+
+def checkpoint_replay_buffer_path(model_path: str) -> str | None:
+    """
+    The replay buffer saved with a checkpoint: ``<prefix>_replay_buffer_<steps>_steps.pkl`` for
+    ``<prefix>_<steps>_steps.zip`` (None for a path of another form).
+
+    :param model_path: the checkpoint's model zip
+    :return: the buffer's path (which may not exist)
+    """
+    folder, name = os.path.split(model_path)
+    stem, suffix = os.path.splitext(name)
+    parts = stem.rsplit("_", 2)
+    if suffix != ".zip" or len(parts) != 3 or parts[2] != "steps" or not parts[1].isdigit():
+        return None
+    return os.path.join(folder, f"{parts[0]}_replay_buffer_{parts[1]}_steps.pkl")
+
+
+__all__ = ["MetaTestCallback", "MetaTestTrialCallback", "ResumableCheckpointCallback", "checkpoint_replay_buffer_path"]

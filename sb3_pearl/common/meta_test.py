@@ -33,6 +33,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from sb3_pearl.common.adaptation import AdaptiveModel, check_adaptive
+from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.seeding import derived_seed, get_global_rng_state, seed_global_rngs, set_global_rng_state
 from sb3_pearl.common.statistics import format_summary_table, summarize
 from sb3_pearl.envs.task_protocol import Task
@@ -131,9 +132,9 @@ class MetaTestResult:
         return [entry for entry in self.summary if entry["k"] in ks]
 
     def to_csv(self, path: str | os.PathLike[str]) -> None:
-        """Write the rows as CSV (columns :attr:`columns`; missing extras are empty)."""
+        """Write the rows as CSV (columns :attr:`columns`; missing extras are empty), atomically."""
         columns = self.columns
-        with open(path, "w", newline="") as file:
+        with atomic_write(path, "w", newline="") as file:
             writer = csv.DictWriter(file, fieldnames=columns, extrasaction="ignore", restval="")
             writer.writeheader()
             for row in self.rows:
@@ -153,8 +154,8 @@ class MetaTestResult:
         )
 
     def to_json(self, path: str | os.PathLike[str]) -> None:
-        """Write :meth:`to_dict` as JSON."""
-        with open(path, "w") as file:
+        """Write :meth:`to_dict` as JSON, atomically."""
+        with atomic_write(path, "w") as file:
             json.dump(self.to_dict(), file, indent=1)
 
     @classmethod

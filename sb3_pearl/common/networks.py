@@ -12,6 +12,7 @@ import torch as th
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 from stable_baselines3.common.torch_layers import create_mlp
 from torch import nn
+from torch.distributions import Normal
 from torch.func import functional_call
 from torch.nn import functional as F
 
@@ -38,6 +39,23 @@ def mlp_with_fp32_head(mlp: nn.Module, x: th.Tensor) -> th.Tensor:
         return head(x.float())
 
 
+class UncheckedSquashedDiagGaussian(SquashedDiagGaussianDistribution):
+    """
+    SB3's tanh-squashed diagonal Gaussian without torch's argument validation (the same numbers).
+
+    torch checks every Normal's parameters and samples (one device sync each) and raises a cryptic
+    "Expected parameter loc ... invalid values" once weights diverge; here non-finite values flow
+    into the losses, where PEARL's divergence guard (``PEARL.train``) skips the update and names the
+    cause.
+    """
+
+    def proba_distribution(  # type: ignore[override]
+        self, mean_actions: th.Tensor, log_std: th.Tensor
+    ) -> UncheckedSquashedDiagGaussian:
+        self.distribution = Normal(mean_actions, th.ones_like(mean_actions) * log_std.exp(), validate_args=False)
+        return self
+
+
 class SquashedGaussianActor(nn.Module):
     """
     pi(a | s, z) for Box actions: tanh-squashed diagonal Gaussian, log std clamped to [-20, 2].
@@ -54,7 +72,7 @@ class SquashedGaussianActor(nn.Module):
         last = net_arch[-1] if net_arch else input_dim
         self.mu = nn.Linear(last, action_dim)
         self.log_std = nn.Linear(last, action_dim)
-        self.action_dist = SquashedDiagGaussianDistribution(action_dim)
+        self.action_dist = UncheckedSquashedDiagGaussian(action_dim)
 
     def _params(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         h = self.latent_pi(x)
@@ -95,7 +113,7 @@ class CategoricalActor(nn.Module):
         logits = mlp_with_fp32_head(self.logits, x)
         if deterministic:
             return logits.argmax(dim=-1)
-        return th.distributions.Categorical(logits=logits).sample()
+        return th.distributions.Categorical(logits=logits, validate_args=False).sample()
 
 
 class LatentCritic(nn.Module):

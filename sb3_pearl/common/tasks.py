@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from gymnasium import spaces
+from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_pearl.envs.task_protocol import TASK_METHODS, Task
 
@@ -74,8 +75,46 @@ def draw_train_test_tasks(env: Any, n_train: int, n_test: int, seed: int | None)
     :param seed: the model seed
     :return: training tasks, test tasks
     """
+    if n_train < 1 or n_test < 0:
+        raise ValueError(f"n_train_tasks must be >= 1 and n_test_tasks >= 0, got {n_train} and {n_test}")
     tasks = env.env_method("sample_tasks", n_train + n_test, seed, indices=[0])[0]
     return list(tasks[:n_train]), list(tasks[n_train:])
+
+
+def check_tasks(env: Any, tasks: list[Task], name: str) -> None:
+    """
+    Raise a clear error unless every task of ``tasks`` is a valid task of the env (checked on its first env).
+
+    Uses the family's ``task_error`` (:class:`~sb3_pearl.envs.task_protocol.MetaTaskEnv`), which leaves the env
+    as it is; an env without it is probed with ``set_task`` and given its task back (a ``DummyVecEnv`` only:
+    a raising ``SubprocVecEnv`` worker would die).
+
+    :param env: a VecEnv of a task family
+    :param tasks: explicit tasks given to the algorithm
+    :param name: their argument name (``train_tasks`` / ``test_tasks``), for the message
+    """
+    if not isinstance(tasks, (list, tuple)):
+        raise TypeError(
+            f"{name} must be a list of task dicts (as from env.unwrapped.sample_tasks(n)), got {type(tasks).__name__}"
+        )
+    fix = "pass tasks as returned by env.unwrapped.sample_tasks(n) (or let the algorithm draw them)"
+    if env.has_attr("task_error"):
+        for index, task in enumerate(tasks):
+            error = env.env_method("task_error", task, indices=[0])[0]
+            if error is not None:
+                raise ValueError(f"{name}[{index}] = {task!r} is not a task of this env: {error}; {fix}")
+        return
+    if not isinstance(env, DummyVecEnv):
+        return
+    original = env.env_method("get_task", indices=[0])[0]
+    try:
+        for index, task in enumerate(tasks):
+            try:
+                env.env_method("set_task", task, indices=[0])
+            except (ValueError, TypeError, KeyError, IndexError) as error:
+                raise ValueError(f"{name}[{index}] = {task!r} is not a task of this env: {error}; {fix}") from None
+    finally:
+        env.env_method("set_task", original, indices=[0])
 
 
 def resolve_train_test_tasks(
@@ -95,8 +134,10 @@ def resolve_train_test_tasks(
     :param n_train: number of training tasks to draw
     :param n_test: number of test tasks to draw
     :param seed: the model seed
-    :return: training tasks, test tasks
+    :return: training tasks, test tasks (explicit ones checked with :func:`check_tasks`)
     """
+    check_tasks(env, train_tasks, "train_tasks")
+    check_tasks(env, test_tasks, "test_tasks")
     if train_tasks:
         return list(train_tasks), list(test_tasks)
     train, test = draw_train_test_tasks(env, n_train, n_test, seed)

@@ -81,6 +81,15 @@ class SafePointGoalMetaEnv(PointGoalMetaEnv):
             "hazard": [self.hazard_distance * float(np.cos(hazard_angle)), self.hazard_distance * float(np.sin(hazard_angle))],
         }
 
+    def _validate_task(self, task: Task) -> None:
+        super()._validate_task(task)
+        distance = float(np.linalg.norm(np.asarray(task["hazard"], dtype=np.float64)))
+        if distance <= self.hazard_radius:
+            raise ValueError(
+                f"SafePointGoalMetaEnv.set_task: the hazard {task['hazard']} covers the start (0, 0): its centre is "
+                f"{distance:.3g} from the origin, it must be farther than hazard_radius={self.hazard_radius}"
+            )
+
     @property
     def hazard_center(self) -> np.ndarray:
         return np.asarray(self._task["hazard"], dtype=np.float64)

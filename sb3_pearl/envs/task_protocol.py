@@ -16,6 +16,7 @@ JSON-serialisable ``dict``:
 from __future__ import annotations
 
 import copy
+import math
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
@@ -74,22 +75,104 @@ class MetaTaskEnv:
         return [self._sample_task(rng) for _ in range(n)]
 
     def set_task(self, task: Task) -> None:
-        """Set the task used from the next ``reset()`` on (sticky until the next call)."""
+        """
+        Set the task used from the next ``reset()`` on (sticky until the next call).
+
+        :param task: a task dict as returned by :meth:`sample_tasks`; a value of another type or shape than the
+            family's, a non-finite number or (family-specific) a value out of range raises a ``ValueError``
+        """
         if not isinstance(task, dict):
             raise TypeError(f"set_task expects a task dict as returned by sample_tasks(), got {type(task).__name__}")
         self._validate_task(task)
-        self._pending_task = copy.deepcopy(task)
+        self._pending_task = _plain(task)
+
+    def task_error(self, task: Any) -> str | None:
+        """
+        Why ``task`` is not a valid task of this env, or None if it is (``set_task`` without side effects).
+
+        Works through ``VecEnv.env_method`` (a raising worker would bring a ``SubprocVecEnv`` down).
+
+        :param task: the candidate task
+        :return: the message ``set_task`` would raise, or None
+        """
+        if not isinstance(task, dict):
+            return f"a task must be a dict as returned by sample_tasks(), got {type(task).__name__}"
+        try:
+            self._validate_task(task)
+        except (ValueError, TypeError, KeyError, IndexError) as error:
+            return str(error)
+        return None
 
     def get_task(self) -> Task:
         """The task that the next ``reset()`` will use (the pending one if ``set_task`` was called)."""
         return copy.deepcopy(self._pending_task if self._pending_task is not None else self._task)
 
     def _validate_task(self, task: Task) -> None:
+        """
+        Raise unless ``task`` has the keys of this family's tasks and every value the type and shape of theirs
+        (numbers finite). Families add range checks (calling this first).
+        """
         expected = set(self._task)
         if set(task) != expected:
             raise ValueError(f"{type(self).__name__}.set_task: task keys {sorted(task)} != expected {sorted(expected)}")
+        for key in sorted(expected):
+            problem = _value_problem(self._task[key], task[key])
+            if problem is not None:
+                raise ValueError(
+                    f"{type(self).__name__}.set_task: {key} must be {problem}, as from sample_tasks() "
+                    f"(e.g. {self._task[key]!r}), got {task[key]!r}"
+                )
 
     def _apply_pending_task(self) -> None:
         if self._pending_task is not None:
             self._task = self._pending_task
             self._pending_task = None
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _value_problem(template: Any, value: Any) -> str | None:
+    """What ``value`` must be to match ``template`` (a value of a sampled task), or None when it does."""
+    if isinstance(template, (bool, np.bool_)):
+        return None if isinstance(value, (bool, np.bool_)) else "a bool"
+    if _is_number(template):
+        if isinstance(value, np.ndarray) and value.shape == ():
+            value = value.item()
+        if not _is_number(value) or not math.isfinite(float(value)):
+            return "a finite number"
+        if isinstance(template, (int, np.integer)) and float(value) != int(value):
+            return "an integer"
+        return None
+    if isinstance(template, str):
+        return None if isinstance(value, str) else "a string"
+    if isinstance(template, (list, tuple, np.ndarray)):
+        if not isinstance(value, (list, tuple, np.ndarray)) or len(value) != len(template):
+            return f"a list of {len(template)} values"
+        for item_template, item in zip(template, value):
+            problem = _value_problem(item_template, item)
+            if problem is not None:
+                return f"a list of {len(template)} values, each {problem}"
+        return None
+    if isinstance(template, dict):
+        if not isinstance(value, dict) or set(value) != set(template):
+            return f"a dict with keys {sorted(template)}"
+        for key in template:
+            problem = _value_problem(template[key], value[key])
+            if problem is not None:
+                return f"a dict whose {key!r} is {problem}"
+    return None
+
+
+def _plain(value: Any) -> Any:
+    """A deep copy with numpy values as Python ones (tasks stay JSON-serialisable)."""
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return copy.deepcopy(value)

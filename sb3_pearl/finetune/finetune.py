@@ -25,7 +25,20 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import ConstantSchedule, get_parameters_by_name
 from stable_baselines3.sac.policies import SACPolicy
 
-from sb3_pearl.common.adaptation import stored_action
+from sb3_pearl.common.adaptation import check_finite_transition, stored_action
+from sb3_pearl.common.checks import (
+    check_arch,
+    check_ent_coef,
+    check_gamma,
+    check_int,
+    check_learning_rate,
+    check_real,
+    check_task_counts,
+    check_tau,
+    is_integer,
+)
+from sb3_pearl.common.divergence import check_env_step
+from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin
 from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
@@ -37,7 +50,7 @@ SelfFineTune = TypeVar("SelfFineTune", bound="FineTune")
 _ADAPTATION_STATE = ("policy", "log_ent_coef", "ent_coef_optimizer", "replay_buffer", "lr_schedule", "_n_updates", "_logger")
 
 
-class FineTune(DiscreteSAC):
+class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
     """
     Fine-Tune baseline: SAC trained on the mixture of the training tasks, fine-tuned on a new task.
 
@@ -111,6 +124,8 @@ class FineTune(DiscreteSAC):
     # trajectory it is worse than k = 0 on the point robot, unlike after one stochastic trajectory
     # (docs/finetune.md, measurements).
     stochastic_adaptation: ClassVar[bool] = False
+    # Parameters every Fine-Tune zip holds (load() refuses a zip without them, e.g. a SAC one).
+    saved_data_keys: ClassVar[tuple[str, ...]] = ("adapt_gradient_steps", "adapt_buffer_size", "train_tasks")
 
     def __init__(
         self,
@@ -152,16 +167,30 @@ class FineTune(DiscreteSAC):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        if n_train_tasks < 1 or n_test_tasks < 0:
-            raise ValueError(f"n_train_tasks must be >= 1 and n_test_tasks >= 0, got {n_train_tasks} and {n_test_tasks}")
+        # Every argument checked before anything is built (docs/reliability.md).
+        check_task_counts(n_train_tasks, n_test_tasks)
+        check_int("batch_size", batch_size, 1, hint="minibatch size of meta-training")
+        check_int("buffer_size", buffer_size, 1, hint="replay buffer size of meta-training")
+        check_int("learning_starts", learning_starts, 0, hint="random-action steps before the first gradient step")
+        check_int("target_update_interval", target_update_interval, 1, hint="gradient steps between target updates")
+        check_int("n_steps", n_steps, 1, hint="n-step returns; 1 for one-step")
+        if not (is_integer(gradient_steps) and (gradient_steps >= 0 or gradient_steps == -1)):
+            raise ValueError(f"gradient_steps must be an integer >= 0, or -1 (as many as env steps), got {gradient_steps!r}")
+        check_learning_rate("learning_rate", learning_rate)
+        check_gamma(gamma)
+        check_tau(tau)
+        check_ent_coef(ent_coef)
+        if target_entropy != "auto":
+            check_real("target_entropy", target_entropy, hint="or 'auto'")
+        check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
         if train_tasks is not None and len(train_tasks) == 0:
             raise ValueError("train_tasks must hold at least one task (or be None to draw them)")
         if adapt_gradient_steps < 0:
             raise ValueError(f"adapt_gradient_steps must be >= 0, got {adapt_gradient_steps}")
         if adapt_batch_size is not None and adapt_batch_size < 1:
             raise ValueError(f"adapt_batch_size must be >= 1 or None, got {adapt_batch_size}")
-        if adapt_learning_rate is not None and adapt_learning_rate < 0:
-            raise ValueError(f"adapt_learning_rate must be >= 0 or None, got {adapt_learning_rate}")
+        if adapt_learning_rate is not None:
+            check_real("adapt_learning_rate", adapt_learning_rate, 0.0, hint="or None: the meta-training learning rate")
         if adapt_buffer_size < 1:
             raise ValueError(f"adapt_buffer_size must be >= 1, got {adapt_buffer_size}")
         if max_episode_steps is not None and max_episode_steps < 1:
@@ -285,6 +314,8 @@ class FineTune(DiscreteSAC):
         applied the task drawn at the previous episode end, and no transition ever runs on a task
         other than its episode's.
         """
+        # Divergence guard: a non-finite observation or reward is an error naming the env, task and timestep.
+        check_env_step(self.env, new_obs, reward, dones, infos, self.num_timesteps - self.n_envs, type(self).__name__)
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
         finished = np.flatnonzero(dones)
         if len(finished) > 0:
@@ -356,6 +387,7 @@ class FineTune(DiscreteSAC):
         :param done: the episode ended (terminated or truncated); an end at ``max_episode_steps`` steps is taken
             as a time-limit truncation (bootstrapped), any other as a terminal state
         """
+        check_finite_transition(obs, reward, next_obs)
         if self._adapt_buffer is None:
             self.reset_adaptation()
         assert self._adapt_buffer is not None

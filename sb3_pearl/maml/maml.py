@@ -33,6 +33,9 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import safe_mean
 from torch.nn.utils import parameters_to_vector
 
+from sb3_pearl.common.adaptation import check_finite_transition
+from sb3_pearl.common.checks import check_arch, check_gamma, check_int, check_real, check_task_counts
+from sb3_pearl.common.persistence import SaveLoadMixin
 from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.advantages import compute_advantages, split_task_samples
@@ -44,7 +47,7 @@ from sb3_pearl.maml.type_aliases import EpisodeBatch, OldPolicy, TaskSamples, TR
 SelfMAML = TypeVar("SelfMAML", bound="MAML")
 
 
-class MAML(BaseAlgorithm):
+class MAML(SaveLoadMixin, BaseAlgorithm):
     """
     MAML-TRPO: Model-Agnostic Meta-Learning with a TRPO outer loop (Finn et al. 2017).
     Paper: https://arxiv.org/abs/1703.03400
@@ -87,6 +90,8 @@ class MAML(BaseAlgorithm):
     # step needs on-policy samples (deterministic trajectories would give it no gradient).
     stochastic_adaptation: ClassVar[bool] = True
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
+    # Parameters every MAML zip holds (load() refuses a zip without them).
+    saved_data_keys: ClassVar[tuple[str, ...]] = ("inner_lr", "meta_batch_size", "num_inner_steps", "train_tasks")
     policy: MAMLPolicy
 
     def __init__(
@@ -120,6 +125,23 @@ class MAML(BaseAlgorithm):
         device: th.device | str = "cpu",
         _init_setup_model: bool = True,
     ) -> None:
+        # Every argument checked before anything is built (docs/reliability.md).
+        check_real("inner_lr", inner_lr, 0.0, hint="step size of the inner policy-gradient update, e.g. 0.1")
+        check_int("num_inner_steps", num_inner_steps, 1, hint="inner updates per task")
+        check_int("meta_batch_size", meta_batch_size, 1, hint="tasks per meta-iteration")
+        check_int("episodes_per_task", episodes_per_task, 1, hint="trajectories per task before and after adaptation")
+        check_task_counts(n_train_tasks, n_test_tasks)
+        if max_episode_steps is not None:
+            check_int("max_episode_steps", max_episode_steps, 1, hint="or None: the env's registered time limit")
+        check_gamma(gamma)
+        check_real("gae_lambda", gae_lambda, 0.0, 1.0, hint="GAE lambda; 1: Monte-Carlo returns minus the baseline")
+        check_real("baseline_reg", baseline_reg, 0.0, hint="ridge coefficient of the linear baseline")
+        check_real("max_kl", max_kl, 0.0, low_open=True, hint="KL bound of the TRPO step, e.g. 0.01")
+        check_int("cg_iters", cg_iters, 1, hint="conjugate-gradient iterations")
+        check_real("cg_damping", cg_damping, 0.0, hint="damping of the Fisher-vector products")
+        check_real("ls_backtrack_ratio", ls_backtrack_ratio, 0.0, 1.0, low_open=True, high_open=True, hint="e.g. 0.8")
+        check_int("ls_max_steps", ls_max_steps, 1, hint="line-search candidates")
+        check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
         super().__init__(
             policy,
             env,
@@ -132,16 +154,6 @@ class MAML(BaseAlgorithm):
             support_multi_env=True,
             seed=seed,
         )
-        if inner_lr < 0 or num_inner_steps < 1:
-            raise ValueError(f"inner_lr must be >= 0 and num_inner_steps >= 1, got {inner_lr} and {num_inner_steps}")
-        if meta_batch_size < 1 or episodes_per_task < 1:
-            raise ValueError(f"meta_batch_size and episodes_per_task must be >= 1, got {meta_batch_size}, {episodes_per_task}")
-        if n_train_tasks < 1 or n_test_tasks < 0:
-            raise ValueError(f"n_train_tasks must be >= 1 and n_test_tasks >= 0, got {n_train_tasks}, {n_test_tasks}")
-        if max_kl <= 0 or cg_iters < 1 or not 0 < ls_backtrack_ratio < 1 or ls_max_steps < 1:
-            raise ValueError("need max_kl > 0, cg_iters >= 1, 0 < ls_backtrack_ratio < 1 and ls_max_steps >= 1")
-        if max_episode_steps is not None and max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be >= 1 or None, got {max_episode_steps}")
         self.inner_lr = inner_lr
         self.num_inner_steps = num_inner_steps
         self.first_order = first_order
@@ -361,11 +373,11 @@ class MAML(BaseAlgorithm):
         assert self._task_rng is not None
         if not self.train_tasks:
             raise ValueError("MAML has no training tasks: pass an env following the task protocol or train_tasks")
+        callback.on_rollout_start()  # before the task draw: a checkpoint saved here resumes exactly
         n_train = len(self.train_tasks)
         task_ids = self._task_rng.choice(n_train, size=self.meta_batch_size, replace=self.meta_batch_size > n_train)
         tasks = [self.train_tasks[j] for j in task_ids]
 
-        callback.on_rollout_start()
         pre_batch, continue_training = self._collect_episodes(tasks, None, callback)
         if not continue_training:
             return False
@@ -462,6 +474,7 @@ class MAML(BaseAlgorithm):
         :param next_obs: next observation (unused: the baseline needs no bootstrap)
         :param done: end of the trajectory (terminated or truncated)
         """
+        check_finite_transition(obs, reward, next_obs)
         obs_flat = np.asarray(obs, dtype=np.float32).reshape(-1)
         if obs_flat.shape[0] != self.policy.obs_dim:
             raise ValueError(f"observe: expected one observation of size {self.policy.obs_dim}, got shape {np.shape(obs)}")

@@ -17,6 +17,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import stored_action
+from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.policies import MAMLPolicy, Params
 from sb3_pearl.maml.type_aliases import EpisodeBatch
@@ -127,6 +128,8 @@ def collect_episodes(
                 env_params = {name: value[task_of_env] for name, value in params.items()}
                 raw = policy.batched_distribution(obs_t.unsqueeze(1), env_params).sample().squeeze(1)
         new_obs, step_rewards, dones, infos = env.step(env_actions(policy, raw))
+        # Divergence guard: a non-finite observation or reward is an error naming the env, task and timestep.
+        check_env_step(env, new_obs, step_rewards, dones, infos, model.num_timesteps, type(model).__name__, active)
         new_obs = np.asarray(new_obs, dtype=np.float32).reshape(n_envs, obs_dim)
         raw_np = raw.cpu().numpy().reshape(n_envs, -1)
 

@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 import torch as th
-from torch.nn.utils import parameters_to_vector, vector_to_parameters
+from torch.nn.utils import parameters_to_vector
 
 from sb3_pearl.maml.type_aliases import TRPOInfo
 
@@ -59,6 +59,25 @@ def conjugate_gradient(
     return x
 
 
+def write_vector(vector: th.Tensor, parameters: list[th.Tensor]) -> None:
+    """
+    Copy a flat vector into the parameters, in place.
+
+    Unlike ``torch.nn.utils.vector_to_parameters`` (which makes each parameter a view into ``vector``), every
+    parameter keeps its own storage: matrix products then do not depend on where a view happens to start in
+    memory, so a model saved and loaded computes bit for bit what the original does (exact resume).
+
+    :param vector: flat values, shape ``(P,)``
+    :param parameters: the parameters, ``P`` elements in all
+    """
+    offset = 0
+    with th.no_grad():
+        for param in parameters:
+            n = param.numel()
+            param.copy_(vector[offset : offset + n].view_as(param))
+            offset += n
+
+
 def line_search(
     evaluate: Callable[[], tuple[th.Tensor, th.Tensor]],
     parameters: list[th.Tensor],
@@ -91,7 +110,7 @@ def line_search(
     for n_backtracks in range(max_steps):
         fraction = backtrack_ratio**n_backtracks
         candidate = theta_old + fraction * full_step
-        vector_to_parameters(candidate, parameters)
+        write_vector(candidate, parameters)
         with th.enable_grad():
             new_surrogate, new_kl = evaluate()
         new_surrogate, new_kl = new_surrogate.detach(), new_kl.detach()
@@ -104,5 +123,5 @@ def line_search(
                 n_backtracks,
                 True,
             )
-    vector_to_parameters(theta_old, parameters)
+    write_vector(theta_old, parameters)
     return TRPOInfo(surrogate_before, surrogate_before, 0.0, 0.0, max_steps, False)

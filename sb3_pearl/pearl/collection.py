@@ -18,6 +18,8 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_pearl.common.divergence import check_env_step, check_finite_actions
+
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL
 
@@ -80,6 +82,9 @@ def collect_iteration(
     """
     Run the programs on the envs, each env one task at a time.
 
+    The caller calls ``callback.on_rollout_start()`` before planning the iteration (:func:`plan_iteration` draws
+    from the global RNG), so that a checkpoint saved there resumes exactly; this ends with ``on_rollout_end()``.
+
     :return: steps collected, steps planned, whether training should go on
     """
     planned = sum(seg.n_steps for program in programs for seg in program)
@@ -92,7 +97,6 @@ def collect_iteration(
     z = th.zeros(n_envs, model.latent_dim, device=model.device)
     obs = np.array(model._last_obs, dtype=np.float32)  # type: ignore[arg-type]
     collected = 0
-    callback.on_rollout_start()
     while True:
         for slot in range(n_envs):
             while remaining[slot] == 0 and (running[slot] or queue):
@@ -114,8 +118,11 @@ def collect_iteration(
 
         with th.no_grad():
             actions = model.policy.act(th.as_tensor(obs, device=model.device), z).cpu().numpy()
+        check_finite_actions(actions, model.num_timesteps, type(model).__name__)
         env_actions = actions if model.policy.discrete else model.policy.unscale_action(actions)
         new_obs, rewards, dones, infos = env.step(env_actions)
+        # Divergence guard: a non-finite observation or reward is an error naming the env, task and timestep.
+        check_env_step(env, new_obs, rewards, dones, infos, model.num_timesteps, type(model).__name__, active.tolist())
 
         for slot in active.tolist():
             current = segments[slot]

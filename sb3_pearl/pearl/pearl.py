@@ -17,14 +17,26 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_pearl.common.adaptation import stored_action
+from sb3_pearl.common.adaptation import check_finite_transition, stored_action
 from sb3_pearl.common.buffers import MetaReplayBuffer
+from sb3_pearl.common.checks import (
+    check_arch,
+    check_ent_coef,
+    check_gamma,
+    check_int,
+    check_learning_rate,
+    check_real,
+    check_task_counts,
+    check_tau,
+)
 from sb3_pearl.common.context import kl_to_standard_normal
 from sb3_pearl.common.diagnostics import record_gradient_conflict
+from sb3_pearl.common.divergence import NonFiniteUpdateGuard
+from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, check_buffer_tasks, read_replay_buffer
+from sb3_pearl.common.precision import resolve_bf16
 from sb3_pearl.common.soft_actor_critic import (
     critic_regression_loss,
     entropy_log_prob,
@@ -50,7 +62,7 @@ class PosteriorSample(NamedTuple):
     z: th.Tensor  # (T, latent_dim): a reparameterised sample (carries encoder gradients), or the mean
 
 
-class PEARL(OffPolicyAlgorithm):
+class PEARL(ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
     """
     PEARL (Rakelly et al. 2019): off-policy meta-RL with probabilistic context variables.
 
@@ -104,7 +116,9 @@ class PEARL(OffPolicyAlgorithm):
     :param num_train_steps_per_itr: gradient steps per iteration
     :param use_bf16: run the hidden layers of every network in bfloat16 (``torch.autocast``) during
         gradient steps; weights, optimizers, output layers and losses stay float32. 2.6x faster
-        PEARL+ steps on a CPU with AVX512-BF16 (slower on CPUs without it); see docs/pearl.md
+        PEARL+ steps on a CPU with AVX512-BF16; on a device without native bfloat16 (an AVX2-only CPU:
+        1.5-18x slower) ``True`` warns and trains in float32, ``"force"`` uses bfloat16 anyway
+        (:mod:`sb3_pearl.common.precision`, docs/pearl.md)
     :param grad_conflict_log_freq: every this many gradient steps, log ``train/grad_conflict_ratio``
         (``||prior_coef * grad prior term|| / ||grad posterior term||`` on the actor parameters) and
         ``train/grad_conflict_cos`` (their cosine) from that step's losses (docs/diagnostics.md); 0: off
@@ -118,6 +132,12 @@ class PEARL(OffPolicyAlgorithm):
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": PEARLPolicy}
+    # Parameters every PEARL / PEARL+ zip holds (load() refuses a zip without them, e.g. a SAC one).
+    saved_data_keys: ClassVar[tuple[str, ...]] = ("kl_weight", "meta_batch", "num_train_steps_per_itr", "train_tasks")
+    # Whether the class trains the prior term: PEARL.load refuses a PEARL+ zip (it would drop the prior critic).
+    has_prior_term: ClassVar[bool] = False
+    # Gradient steps in a row with a non-finite loss or gradient (each skipped) that stop training (DivergenceError).
+    max_consecutive_nonfinite_updates: ClassVar[int] = 10
     policy: PEARLPolicy
     replay_buffer: MetaReplayBuffer  # type: ignore[assignment]
     # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before set-up).
@@ -152,7 +172,7 @@ class PEARL(OffPolicyAlgorithm):
         num_steps_posterior: int = 0,
         num_extra_rl_steps_posterior: int = 600,
         num_train_steps_per_itr: int = 2000,
-        use_bf16: bool = False,
+        use_bf16: bool | str = False,
         grad_conflict_log_freq: int = 0,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -162,21 +182,43 @@ class PEARL(OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        for name, value in (
-            ("n_train_tasks", n_train_tasks),
-            ("meta_batch", meta_batch),
-            ("batch_size", batch_size),
-            ("embedding_batch_size", embedding_batch_size),
+        # Every argument checked before anything is built (docs/reliability.md).
+        check_task_counts(n_train_tasks, n_test_tasks)
+        for name, value, hint in (
+            ("meta_batch", meta_batch, "tasks per gradient step"),
+            ("batch_size", batch_size, "RL transitions per task in a gradient step"),
+            ("embedding_batch_size", embedding_batch_size, "context transitions per task in a gradient step"),
+            ("buffer_size", buffer_size, "RL transitions kept per task"),
+            ("latent_dim", latent_dim, "size of z"),
+            ("num_tasks_sample", num_tasks_sample, "tasks visited per iteration"),
         ):
-            if value < 1:
-                raise ValueError(f"{name} must be >= 1, got {value}")
-        if grad_conflict_log_freq < 0:
-            raise ValueError(f"grad_conflict_log_freq must be >= 0 (0: off), got {grad_conflict_log_freq}")
-        if min(num_initial_steps, num_steps_prior, num_steps_posterior, num_extra_rl_steps_posterior) < 0:
-            raise ValueError("the num_*_steps collection sizes must be >= 0")
+            check_int(name, value, 1, hint)
+        for name, value, hint in (
+            ("num_train_steps_per_itr", num_train_steps_per_itr, "gradient steps per iteration; 0 collects only"),
+            ("num_initial_steps", num_initial_steps, "prior steps per training task in iteration 0"),
+            ("num_steps_prior", num_steps_prior, "prior-z steps per visited task"),
+            ("num_steps_posterior", num_steps_posterior, "posterior-z steps per visited task"),
+            ("num_extra_rl_steps_posterior", num_extra_rl_steps_posterior, "posterior-z steps for the RL buffer only"),
+            ("grad_conflict_log_freq", grad_conflict_log_freq, "0: off"),
+        ):
+            check_int(name, value, 0, hint)
         if num_steps_prior + num_steps_posterior == 0:
             raise ValueError(
                 "num_steps_prior + num_steps_posterior must be > 0: they fill the context buffer the encoder trains on"
+            )
+        check_learning_rate("learning_rate", learning_rate)
+        check_gamma(gamma)
+        check_tau(tau)
+        check_ent_coef(ent_coef)
+        check_real("kl_weight", kl_weight, 0.0, hint="weight of the KL term; 0 turns it off")
+        check_real("reward_scale", reward_scale, 0.0, low_open=True, hint="rewards are multiplied by it in the critic targets")
+        if target_entropy != "auto":
+            check_real("target_entropy", target_entropy, hint="or 'auto'")
+        check_arch("encoder_arch", encoder_arch)
+        check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
+        if use_bf16 not in (True, False, "force"):
+            raise ValueError(
+                f"use_bf16 must be True, False or 'force' (bfloat16 even without native support), got {use_bf16!r}"
             )
         super().__init__(
             policy,
@@ -271,6 +313,8 @@ class PEARL(OffPolicyAlgorithm):
         self._create_aliases()
         self._setup_entropy()
         self._convert_train_freq()
+        self._update_guard = NonFiniteUpdateGuard(type(self).__name__, self.max_consecutive_nonfinite_updates)
+        self._bf16_enabled = resolve_bf16(self.use_bf16, self.device, type(self).__name__)
         self.reset_adaptation()
 
     def _create_aliases(self) -> None:
@@ -389,6 +433,21 @@ class PEARL(OffPolicyAlgorithm):
             z_var=posterior.var.detach(),
         )
 
+    @staticmethod
+    def _named_losses(losses: PEARLLosses) -> dict[str, th.Tensor]:
+        """The losses of a step by name (the divergence guard's message)."""
+        names = ("critic_loss", "kl_loss", "prior_critic_loss", "actor_loss", "prior_actor_loss", "ent_coef_loss", "ent_coef")
+        return {name: getattr(losses, name) for name in names}
+
+    def _divergence_settings(self) -> dict[str, Any]:
+        """The settings the divergence guard names as likely fixes."""
+        return {
+            "learning_rate": self.lr_schedule(self._current_progress_remaining),
+            "reward_scale": self.reward_scale,
+            "kl_weight": self.kl_weight,
+            "prior_coef": self.prior_coef,
+        }
+
     def _total_loss(self, losses: PEARLLosses) -> th.Tensor:
         return (
             losses.critic_loss
@@ -439,16 +498,23 @@ class PEARL(OffPolicyAlgorithm):
         if self.ent_coef_optimizer is not None:
             optimizers = [*optimizers, self.ent_coef_optimizer]
         self._update_learning_rate(optimizers)
+        parameters = [p for optimizer in optimizers for group in optimizer.param_groups for p in group["params"]]
         logs: dict[str, list[float]] = {}
         for step in range(gradient_steps):
             replay, context, z0 = self._sample_meta_batch(batch_size)
-            with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self.use_bf16):
+            with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self._bf16_enabled):
                 losses = self._compute_losses(replay, context, z0)
             if self.grad_conflict_log_freq > 0 and (self._n_updates + step) % self.grad_conflict_log_freq == 0:
                 record_gradient_conflict(self, losses, logs)  # two extra actor-only backward passes
             for optimizer in optimizers:
                 optimizer.zero_grad(set_to_none=True)
-            self._total_loss(losses).backward()
+            total_loss = self._total_loss(losses)
+            total_loss.backward()
+            # Divergence guard: a non-finite loss or gradient skips the step (one sync); too many in a row stop.
+            if not self._update_guard.is_finite(total_loss, parameters):
+                self._update_guard.skip(self._named_losses(losses), self._divergence_settings())
+                continue
+            self._update_guard.ok()
             for optimizer in optimizers:
                 optimizer.step()
             polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
@@ -469,6 +535,8 @@ class PEARL(OffPolicyAlgorithm):
         self._n_updates += gradient_steps
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        if self._update_guard.skipped:
+            self.logger.record("train/skipped_updates", self._update_guard.skipped)
         for key, values in logs.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
 
@@ -500,6 +568,7 @@ class PEARL(OffPolicyAlgorithm):
         callback.on_training_start(locals(), globals())
         assert self.env is not None
         while self.num_timesteps < total_timesteps:
+            callback.on_rollout_start()  # before plan_iteration's draws: a checkpoint saved here resumes exactly
             collected, planned, continue_training = collect_iteration(self, self.env, callback, plan_iteration(self))
             if not continue_training:
                 break
@@ -531,6 +600,7 @@ class PEARL(OffPolicyAlgorithm):
         :param next_obs: observation after the action
         :param done: whether the episode ended (not used by the encoder)
         """
+        check_finite_transition(obs, reward, next_obs)
         obs_dim = self.policy.obs_dim
         obs = np.asarray(obs, dtype=np.float32).reshape(-1)
         next_obs = np.asarray(next_obs, dtype=np.float32).reshape(-1)
@@ -581,6 +651,8 @@ class PEARL(OffPolicyAlgorithm):
             "prior_critic",
             "prior_critic_target",
             "_adapt_context",
+            "_update_guard",
+            "_bf16_enabled",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -591,11 +663,34 @@ class PEARL(OffPolicyAlgorithm):
             return [*state_dicts, "ent_coef_optimizer"], ["log_ent_coef"]
         return state_dicts, ["ent_coef_tensor"]
 
+    @classmethod
+    def _saved_class_name(cls, data: dict[str, Any]) -> str:
+        prior_coef, mode = data.get("prior_coef", 0.0), data.get("prior_critic_mode", "none")
+        return "PEARLPlus" if prior_coef != 0.0 or mode != "none" else "PEARL"
+
+    @classmethod
+    def _check_saved_data(cls, data: dict[str, Any], path: str) -> None:
+        super()._check_saved_data(data, path)
+        prior_coef, mode = data.get("prior_coef", 0.0), data.get("prior_critic_mode", "none")
+        if not cls.has_prior_term and cls._saved_class_name(data) == "PEARLPlus":
+            raise ValueError(
+                f"{path} holds a PEARL+ model (prior_coef={prior_coef}, prior_critic={mode!r}): load it with PEARLPlus.load; "
+                f"{cls.__name__}.load would drop its prior term and prior critic"
+            )
+
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
-        """Load the per-task RL and context buffers saved by ``save_replay_buffer``."""
-        buffer = load_from_pkl(path, self.verbose)
+        """
+        Load the per-task RL and context buffers saved by ``save_replay_buffer``.
+
+        :param path: the pickle
+        :param truncate_last_traj: unused (SB3's option for ``HerReplayBuffer``)
+        """
+        buffer = read_replay_buffer(path, self.verbose)
         if isinstance(buffer, ReplayBuffer) or not isinstance(buffer, MetaReplayBuffer):
-            raise ValueError(f"{path} does not hold a MetaReplayBuffer (per-task buffers saved by PEARL / PEARL+)")
+            raise ValueError(
+                f"{path} does not hold a MetaReplayBuffer (per-task buffers saved by PEARL / PEARL+ save_replay_buffer)"
+            )
         if buffer.n_tasks != len(self.train_tasks):
             raise ValueError(f"the replay buffer holds {buffer.n_tasks} tasks but the model has {len(self.train_tasks)}")
+        check_buffer_tasks(buffer, self.train_tasks, path)
         self.replay_buffer = buffer

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import torch as th
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
+from sb3_pearl.common.checks import check_arch, check_int, check_real
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.pearl.pearl import PEARL
 from sb3_pearl.pearl.policies import PRIOR_CRITIC_MODES, PEARLPolicy
@@ -35,6 +36,8 @@ class PEARLPlus(PEARL):
     :param prior_critic_arch: hidden sizes of the prior critic (paper: [300, 300, 300]; ablation [100, 100, 100])
     :param prior_n_critics: Q networks in the prior critic (the paper: one new Q-network; 2 adds a twin minimum)
     """
+
+    has_prior_term: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -68,7 +71,7 @@ class PEARLPlus(PEARL):
         num_steps_posterior: int = 0,
         num_extra_rl_steps_posterior: int = 600,
         num_train_steps_per_itr: int = 2000,
-        use_bf16: bool = False,
+        use_bf16: bool | str = False,
         grad_conflict_log_freq: int = 0,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -78,8 +81,9 @@ class PEARLPlus(PEARL):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        if not prior_coef >= 0:
-            raise ValueError(f"prior_coef must be >= 0 (the paper's alpha > 0; 0 gives PEARL), got {prior_coef}")
+        check_real("prior_coef", prior_coef, 0.0, hint="the paper's alpha, default 0.1; 0 gives PEARL")
+        check_arch("prior_critic_arch", prior_critic_arch)
+        check_int("prior_n_critics", prior_n_critics, 1, hint="Q networks of the prior critic")
         modes = tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none")
         if prior_critic not in modes:
             raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {modes} (PEARL has none)")

@@ -11,7 +11,8 @@ the project's algorithms (argument parsing, log layout and the Optuna loop are r
 
 The zoo special key ``meta_test`` (a dict, optional) sets the final meta-test:
 ``n_adapt`` (K, default 5), ``n_repeats`` (1), ``n_tasks`` (None: every saved test task),
-``deterministic`` (True); e.g. ``-params meta_test:"dict(n_adapt=3)"``.
+``deterministic`` (True); e.g. ``-params meta_test:"dict(n_adapt=3)"``. A string value is parsed with
+:func:`~sb3_pearl.zoo.safe_config.parse_dict_string` (literals only, never ``eval``).
 """
 
 from __future__ import annotations
@@ -20,23 +21,32 @@ import functools
 import glob
 import importlib.util
 import os
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from types import FrameType
+from typing import Any, ClassVar
 
 import rl_zoo3.exp_manager
 import rl_zoo3.train
-import yaml
 from rl_zoo3 import ALGOS
 from rl_zoo3.exp_manager import ExperimentManager
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import CheckpointCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import has_adaptation_api
-from sb3_pearl.common.callbacks import MetaTestCallback, MetaTestTrialCallback
+from sb3_pearl.common.callbacks import (
+    MetaTestCallback,
+    MetaTestTrialCallback,
+    ResumableCheckpointCallback,
+    checkpoint_replay_buffer_path,
+)
 from sb3_pearl.common.meta_test import MetaTestResult, get_test_tasks, meta_test
 from sb3_pearl.zoo.registry import constructor_kwargs, register_algos
+from sb3_pearl.zoo.safe_config import load_run_yaml, parse_dict_string
 
 # The repository's zoo_hyperparams/ folder (this file is sb3_pearl/zoo/experiment_manager.py).
 HYPERPARAMS_DIR = Path(__file__).resolve().parents[2] / "zoo_hyperparams"
@@ -95,8 +105,13 @@ class MetaExperimentManager(ExperimentManager):
 
     The evaluation callback is :class:`~sb3_pearl.common.callbacks.MetaTestCallback` for
     algorithms with the adaptation API (``--eval-episodes`` test tasks per evaluation,
-    k = 0..``meta_test.n_adapt``); others keep rl_zoo3's ``EvalCallback``.
+    k = 0..``meta_test.n_adapt``); others keep rl_zoo3's ``EvalCallback``. ``--save-freq`` writes
+    resumable checkpoints (:class:`~sb3_pearl.common.callbacks.ResumableCheckpointCallback`), which
+    ``train.py --resume <checkpoint>`` continues up to ``n_timesteps`` (:attr:`resume`).
     """
+
+    # Set by train() for --resume: -i continues the checkpoint's run (counters kept) up to n_timesteps in all.
+    resume: ClassVar[bool] = False
 
     def __init__(self, args: Any, algo: str, env_id: str, log_folder: str, *posargs: Any, **kwargs: Any) -> None:
         if kwargs.get("config") is None and os.path.isfile(default_config(algo)):
@@ -132,15 +147,15 @@ class MetaExperimentManager(ExperimentManager):
                 f"Accepted constructor kwargs: {sorted(accepted)}; zoo keys: {sorted(ZOO_SPECIAL_KEYS)}"
             )
         meta = hyperparams.get("meta_test") or {}
-        if isinstance(meta, str):
-            meta = eval(meta)  # the zoo's convention for dict values given as strings
+        if isinstance(meta, str):  # the zoo's convention for dict values given as strings, parsed without eval()
+            meta = parse_dict_string(meta, "meta_test")
         if not isinstance(meta, dict) or set(meta) - set(META_TEST_DEFAULTS):
             raise ValueError(f"meta_test must be a dict with keys among {sorted(META_TEST_DEFAULTS)}, got {meta!r}")
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
         meta = hyperparams.pop("meta_test", None) or {}
         if isinstance(meta, str):
-            meta = eval(meta)
+            meta = parse_dict_string(meta, "meta_test")
         self.meta_test_kwargs.update(meta)
         return super()._preprocess_hyperparams(hyperparams)
 
@@ -152,6 +167,13 @@ class MetaExperimentManager(ExperimentManager):
         eval_freq, self.eval_freq = self.eval_freq, -1  # the zoo's EvalCallback is replaced below
         super().create_callbacks()
         self.eval_freq = eval_freq
+        # --save-freq: resumable checkpoints (model with its RNG states + replay buffer, at an iteration start).
+        self.callbacks = [
+            ResumableCheckpointCallback(cb.save_freq, cb.save_path, cb.name_prefix, cb.verbose)
+            if type(cb) is CheckpointCallback
+            else cb
+            for cb in self.callbacks
+        ]
         if self.eval_freq > 0 and not self.optimize_hyperparameters:
             self.eval_freq = max(self.eval_freq // self.n_envs, 1)
             if self.verbose > 0:
@@ -191,15 +213,128 @@ class MetaExperimentManager(ExperimentManager):
     # -- loading / saving --------------------------------------------------------------------------------
     def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: VecEnv) -> BaseAlgorithm:
         check_model_env(self.trained_agent, self.env_name.gym_id)
-        return super()._load_pretrained_agent(hyperparams, env)
+        model = super()._load_pretrained_agent(hyperparams, env)  # with <folder>/replay_buffer.pkl if there is one
+        buffer_path = checkpoint_replay_buffer_path(self.trained_agent)
+        if buffer_path is not None and os.path.isfile(buffer_path) and hasattr(model, "load_replay_buffer"):
+            print(f"Loading the checkpoint's replay buffer {buffer_path}")
+            model.load_replay_buffer(buffer_path)
+        return model
+
+    # -- interruptions: SIGTERM and exceptions save the model, as Ctrl-C does -----------------------------
+    def learn(self, model: BaseAlgorithm) -> None:
+        """
+        rl_zoo3's ``learn`` (Ctrl-C stops training and the model is saved), plus:
+
+        - SIGTERM (``kill``, a batch scheduler's time limit) stops training the same way; the model is saved,
+          the final meta-test is skipped and ``train.py`` exits with status 143 (128 + SIGTERM);
+        - an exception during training saves the model reached so far into the run folder, says where, and is
+          re-raised.
+
+        :param model: the model to train
+        """
+        self._stop_signal: str | None = None
+        self._sigterm_raises = True
+        self._previous_sigterm_handler = self._install_sigterm_handler()
+        try:
+            if self.resume and self.continue_training:
+                self._learn_resumed(model)
+            else:
+                super().learn(model)
+        except Exception as error:
+            self._restore_sigterm_handler()
+            self._save_after_failure(model, error)
+            raise
+        self._sigterm_raises = False  # from here on, a SIGTERM no longer interrupts the save
+
+    def _learn_resumed(self, model: BaseAlgorithm) -> None:
+        """
+        ``train.py --resume``: continue the checkpoint's run up to ``n_timesteps`` in all (its counters kept,
+        ``reset_num_timesteps=False``), as rl_zoo3's ``learn`` otherwise (Ctrl-C stops and saves).
+        """
+        remaining = self.n_timesteps - model.num_timesteps
+        print(f"Resuming at {model.num_timesteps} timesteps: {max(remaining, 0)} to go (n_timesteps {self.n_timesteps})")
+        kwargs: dict[str, Any] = {}
+        if self.log_interval > -1:
+            kwargs["log_interval"] = self.log_interval
+        elif self.log_interval < -1:
+            kwargs["log_interval"] = None
+        if self.callbacks:
+            kwargs["callback"] = self.callbacks
+        try:
+            if remaining > 0:
+                model.learn(remaining, reset_num_timesteps=False, **kwargs)
+        except KeyboardInterrupt:
+            pass  # as rl_zoo3: the model is saved by save_trained_model
+        finally:
+            if self.callbacks:
+                self.callbacks[0].on_training_end()
+            try:
+                assert model.env is not None
+                model.env.close()
+            except EOFError:
+                pass
+
+    def _install_sigterm_handler(self) -> Any:
+        if threading.current_thread() is not threading.main_thread():
+            return None  # signal handlers can only be installed by the main thread
+        return signal.signal(signal.SIGTERM, self._on_sigterm)
+
+    def _restore_sigterm_handler(self) -> None:
+        previous = getattr(self, "_previous_sigterm_handler", None)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+            self._previous_sigterm_handler = None
+
+    def _on_sigterm(self, signum: int, frame: FrameType | None) -> None:
+        first = self._stop_signal is None
+        self._stop_signal = "SIGTERM"
+        if first and self._sigterm_raises:
+            print("Received SIGTERM: stopping training and saving the model (SIGKILL stops without saving)", flush=True)
+            raise KeyboardInterrupt  # rl_zoo3's learn() / the meta-test stop as after Ctrl-C
+        print("Received SIGTERM: finishing the save first", flush=True)
+
+    def _model_path(self) -> str:
+        return os.path.join(self.save_path, f"{self.env_name}.zip")
+
+    def _save_after_failure(self, model: BaseAlgorithm, error: BaseException) -> None:
+        """Save the model reached when training raised ``error`` (and its replay buffer if asked), and say where."""
+        try:
+            model.save(self._model_path())
+            if self.save_replay_buffer and hasattr(model, "save_replay_buffer"):
+                model.save_replay_buffer(os.path.join(self.save_path, "replay_buffer.pkl"))
+        except Exception as save_error:  # report both; the training error is re-raised by the caller
+            print(f"Training failed ({type(error).__name__}) and saving the model failed too: {save_error}", file=sys.stderr)
+            return
+        print(
+            f"Training stopped by {type(error).__name__} at {model.num_timesteps} timesteps: the model reached so far is "
+            f"saved to {self._model_path()} (continue with train.py -i {self._model_path()}); the error follows",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def save_trained_model(self, model: BaseAlgorithm) -> None:
-        super().save_trained_model(model)
-        if self.adaptive:
-            try:
-                self.final_meta_test(model)
-            except KeyboardInterrupt:
-                print("Meta-test interrupted: the model is saved, meta_test.* not written")
+        """rl_zoo3's save (model, replay buffer), then the final meta-test unless training was stopped by SIGTERM."""
+        self._sigterm_raises = False
+        if getattr(self, "_previous_sigterm_handler", None) is None:
+            self._stop_signal = getattr(self, "_stop_signal", None)
+            self._previous_sigterm_handler = self._install_sigterm_handler()
+        try:
+            super().save_trained_model(model)
+            if self._stop_signal is None and self.adaptive:
+                self._sigterm_raises = True
+                try:
+                    self.final_meta_test(model)
+                except KeyboardInterrupt:
+                    print("Meta-test interrupted: the model is saved, meta_test.* not written")
+        finally:
+            self._restore_sigterm_handler()
+        if self._stop_signal is not None:
+            print(
+                f"Stopped by {self._stop_signal} at {model.num_timesteps} timesteps: the model is saved to "
+                f"{self._model_path()} (final meta-test skipped; continue with train.py -i {self._model_path()})",
+                flush=True,
+            )
+            raise SystemExit(128 + signal.SIGTERM)
 
     def final_meta_test(self, model: BaseAlgorithm) -> MetaTestResult:
         """
@@ -241,8 +376,7 @@ def check_model_env(model_path: str, env_id: str) -> None:
     :param env_id: the env id it is about to be used with
     """
     for args_path in glob.glob(os.path.join(os.path.dirname(os.path.abspath(model_path)), "*", "args.yml")):
-        with open(args_path) as file:
-            saved = yaml.load(file, Loader=yaml.UnsafeLoader) or {}
+        saved = load_run_yaml(args_path) or {}
         trained_env = saved.get("env")
         if trained_env is not None and trained_env != env_id:
             raise ValueError(f"{model_path} was trained on {trained_env}, not on {env_id} (see {args_path})")
@@ -272,11 +406,28 @@ def train(argv: Sequence[str] | None = None) -> None:
     """
     ``rl_zoo3.train.train()`` with the project's algorithms, hyperparameter files and meta-test.
 
+    One flag of its own: ``--resume CHECKPOINT`` (a ``rl_model_<steps>_steps.zip`` written by ``--save-freq``,
+    or a run's final model): load it with its replay buffer and RNG states and train up to ``n_timesteps`` in
+    all, instead of ``-i``'s ``n_timesteps`` more from a reset counter.
+
     :param argv: command-line arguments (default: ``sys.argv[1:]``)
     """
     register_algos()
-    if argv is not None:
-        sys.argv = [sys.argv[0], *argv]
+    args = list(sys.argv[1:] if argv is None else argv)
+    MetaExperimentManager.resume = False
+    if "--resume" in args:
+        index = args.index("--resume")
+        if index + 1 >= len(args) or not os.path.isfile(args[index + 1]) or not args[index + 1].endswith(".zip"):
+            raise SystemExit(
+                "train.py: --resume takes the checkpoint's model zip, e.g. --resume logs/pearl/Env_1/rl_model_5000_steps.zip"
+            )
+        if "-i" in args or "--trained-agent" in args:
+            raise SystemExit(
+                "train.py: --resume and -i/--trained-agent exclude each other (--resume is -i that keeps the counters)"
+            )
+        args[index] = "--trained-agent"
+        MetaExperimentManager.resume = True
+    sys.argv = [sys.argv[0], *args]
     rl_zoo3.train.ExperimentManager = MetaExperimentManager  # type: ignore[misc]
     rl_zoo3.train.train()
 

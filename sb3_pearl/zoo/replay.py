@@ -16,17 +16,17 @@ from typing import Any
 
 import gymnasium as gym
 import torch as th
-import yaml
 from gymnasium.envs.registration import load_env_creator
 from gymnasium.wrappers import HumanRendering, RecordVideo
 from huggingface_sb3 import EnvironmentName
-from rl_zoo3 import ALGOS, create_test_env, get_saved_hyperparams
+from rl_zoo3 import ALGOS, create_test_env
 from rl_zoo3.utils import StoreDict, get_model_path
 from stable_baselines3.common.utils import set_random_seed
 
 from sb3_pearl.common.meta_test import ROW_COLUMNS, MetaTestResult, get_test_tasks, meta_test
 from sb3_pearl.zoo.experiment_manager import check_model_env, check_model_spaces
 from sb3_pearl.zoo.registry import register_algos
+from sb3_pearl.zoo.safe_config import UnsafeConfigError, get_saved_hyperparams, load_run_yaml
 
 
 def enjoy_parser() -> argparse.ArgumentParser:
@@ -87,8 +87,7 @@ def _saved_env_kwargs(log_path: str, env_name: str, hyperparams: dict[str, Any])
     env_kwargs: dict[str, Any] = dict(hyperparams.pop("env_kwargs", None) or {})
     args_path = os.path.join(log_path, env_name, "args.yml")
     if os.path.isfile(args_path):
-        with open(args_path) as file:
-            loaded = yaml.load(file, Loader=yaml.UnsafeLoader) or {}
+        loaded = load_run_yaml(args_path) or {}
         if loaded.get("env_kwargs") is not None:
             env_kwargs = dict(loaded["env_kwargs"])
     return env_kwargs
@@ -140,8 +139,11 @@ def enjoy(argv: Sequence[str] | None = None) -> MetaTestResult:
         raise SystemExit(f"enjoy.py: {error}") from None
     print(f"Loading {model_path}")
 
-    hyperparams, maybe_stats_path = get_saved_hyperparams(os.path.join(log_path, env_name), test_mode=True)
-    env_kwargs = _saved_env_kwargs(log_path, env_name, hyperparams)
+    try:  # the run folder's YAML, read without running code (sb3_pearl.zoo.safe_config)
+        hyperparams, maybe_stats_path = get_saved_hyperparams(os.path.join(log_path, env_name), test_mode=True)
+        env_kwargs = _saved_env_kwargs(log_path, env_name, hyperparams)
+    except UnsafeConfigError as error:
+        raise SystemExit(f"enjoy.py: {error}") from None
     shifted = bool(args.env_kwargs)
     if args.env_kwargs:
         env_kwargs.update(args.env_kwargs)
