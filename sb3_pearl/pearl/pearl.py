@@ -9,7 +9,7 @@ from __future__ import annotations
 import io
 import math
 import pathlib
-from typing import Any, ClassVar, NamedTuple, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
@@ -20,49 +20,24 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_pearl.common.adaptation import check_finite_transition, stored_action
 from sb3_pearl.common.buffers import MetaReplayBuffer
-from sb3_pearl.common.checks import (
-    check_arch,
-    check_ent_coef,
-    check_gamma,
-    check_int,
-    check_learning_rate,
-    check_real,
-    check_task_counts,
-    check_tau,
-)
-from sb3_pearl.common.context import kl_to_standard_normal
 from sb3_pearl.common.diagnostics import record_gradient_conflict
 from sb3_pearl.common.divergence import NonFiniteUpdateGuard
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, check_buffer_tasks, read_replay_buffer
 from sb3_pearl.common.precision import resolve_bf16
-from sb3_pearl.common.soft_actor_critic import (
-    critic_regression_loss,
-    entropy_log_prob,
-    evaluate_policy,
-    q_of_actions,
-    q_of_policy,
-    soft_value,
-)
 from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.pearl.adaptation import PosteriorAdaptationMixin
+from sb3_pearl.pearl.arguments import check_pearl_arguments
 from sb3_pearl.pearl.collection import collect_iteration, plan_iteration
+from sb3_pearl.pearl.losses import compute_losses
 from sb3_pearl.pearl.policies import PEARLPolicy
 
 SelfPEARL = TypeVar("SelfPEARL", bound="PEARL")
 
 
-class PosteriorSample(NamedTuple):
-    """q(z | c) for T tasks and one z per task."""
-
-    mean: th.Tensor  # (T, latent_dim)
-    var: th.Tensor  # (T, latent_dim)
-    z: th.Tensor  # (T, latent_dim): a reparameterised sample (carries encoder gradients), or the mean
-
-
-class PEARL(ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
+class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
     """
     PEARL (Rakelly et al. 2019): off-policy meta-RL with probabilistic context variables.
 
@@ -183,43 +158,32 @@ class PEARL(ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ):
         # Every argument checked before anything is built (docs/reliability.md).
-        check_task_counts(n_train_tasks, n_test_tasks)
-        for name, value, hint in (
-            ("meta_batch", meta_batch, "tasks per gradient step"),
-            ("batch_size", batch_size, "RL transitions per task in a gradient step"),
-            ("embedding_batch_size", embedding_batch_size, "context transitions per task in a gradient step"),
-            ("buffer_size", buffer_size, "RL transitions kept per task"),
-            ("latent_dim", latent_dim, "size of z"),
-            ("num_tasks_sample", num_tasks_sample, "tasks visited per iteration"),
-        ):
-            check_int(name, value, 1, hint)
-        for name, value, hint in (
-            ("num_train_steps_per_itr", num_train_steps_per_itr, "gradient steps per iteration; 0 collects only"),
-            ("num_initial_steps", num_initial_steps, "prior steps per training task in iteration 0"),
-            ("num_steps_prior", num_steps_prior, "prior-z steps per visited task"),
-            ("num_steps_posterior", num_steps_posterior, "posterior-z steps per visited task"),
-            ("num_extra_rl_steps_posterior", num_extra_rl_steps_posterior, "posterior-z steps for the RL buffer only"),
-            ("grad_conflict_log_freq", grad_conflict_log_freq, "0: off"),
-        ):
-            check_int(name, value, 0, hint)
-        if num_steps_prior + num_steps_posterior == 0:
-            raise ValueError(
-                "num_steps_prior + num_steps_posterior must be > 0: they fill the context buffer the encoder trains on"
-            )
-        check_learning_rate("learning_rate", learning_rate)
-        check_gamma(gamma)
-        check_tau(tau)
-        check_ent_coef(ent_coef)
-        check_real("kl_weight", kl_weight, 0.0, hint="weight of the KL term; 0 turns it off")
-        check_real("reward_scale", reward_scale, 0.0, low_open=True, hint="rewards are multiplied by it in the critic targets")
-        if target_entropy != "auto":
-            check_real("target_entropy", target_entropy, hint="or 'auto'")
-        check_arch("encoder_arch", encoder_arch)
-        check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
-        if use_bf16 not in (True, False, "force"):
-            raise ValueError(
-                f"use_bf16 must be True, False or 'force' (bfloat16 even without native support), got {use_bf16!r}"
-            )
+        check_pearl_arguments(
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            latent_dim=latent_dim,
+            kl_weight=kl_weight,
+            encoder_arch=encoder_arch,
+            ent_coef=ent_coef,
+            target_entropy=target_entropy,
+            reward_scale=reward_scale,
+            n_train_tasks=n_train_tasks,
+            n_test_tasks=n_test_tasks,
+            meta_batch=meta_batch,
+            embedding_batch_size=embedding_batch_size,
+            num_initial_steps=num_initial_steps,
+            num_tasks_sample=num_tasks_sample,
+            num_steps_prior=num_steps_prior,
+            num_steps_posterior=num_steps_posterior,
+            num_extra_rl_steps_posterior=num_extra_rl_steps_posterior,
+            num_train_steps_per_itr=num_train_steps_per_itr,
+            use_bf16=use_bf16,
+            grad_conflict_log_freq=grad_conflict_log_freq,
+            policy_kwargs=policy_kwargs,
+        )
         super().__init__(
             policy,
             env,
@@ -348,90 +312,12 @@ class PEARL(ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
             return self.log_ent_coef.detach().exp()
         return self.ent_coef_tensor
 
-    @property
-    def latent_dim(self) -> int:
-        return self.policy.latent_dim
-
     # ------------------------------------------------------------------------------------------
     # Algorithm 1: the losses of one gradient step
     # ------------------------------------------------------------------------------------------
     def _compute_losses(self, replay: MetaReplaySamples, context: th.Tensor, z0: th.Tensor) -> PEARLLosses:
-        """
-        Losses of one gradient step for T tasks.
-
-        :param replay: RL batch, tensors of leading shape (T, B)
-        :param context: context transitions (T, N, context_dim)
-        :param z0: prior latents (T, latent_dim), one per task
-        :return: the losses; summing them and calling backward gives every network its own gradient
-        """
-        n_tasks, batch = replay.rewards.shape[:2]
-        rows = n_tasks * batch
-        discrete = self.policy.discrete
-        obs = replay.observations.reshape(rows, -1)
-        next_obs = replay.next_observations.reshape(rows, -1)
-        actions = replay.actions.reshape(rows, -1)
-        rewards = self.reward_scale * replay.rewards.reshape(rows, 1)
-        not_done = 1.0 - replay.dones.reshape(rows, 1)
-        ent_coef = self._current_ent_coef()
-
-        # Task inference: q(z | c) per task, one z per task held across its rows.
-        posterior = self.sample_posterior(context)  # mean, var, z: (T, L) each; z carries encoder gradients
-        kl_loss = kl_to_standard_normal(posterior.mean, posterior.var).sum()  # summed over tasks, as the reference
-        z_rows = posterior.z.repeat_interleave(batch, dim=0)  # (T*B, L)
-        z0_rows = z0.repeat_interleave(batch, dim=0)  # (T*B, L)
-        x_post = th.cat([obs, z_rows.detach()], dim=-1)  # actor input with the detached posterior z
-        x_prior = th.cat([obs, z0_rows], dim=-1)
-        use_prior = self.uses_prior_term
-
-        # Actor on the posterior rows and, for PEARL+, the prior rows: one forward.
-        pe_all = evaluate_policy(self.actor, th.cat([x_post, x_prior]) if use_prior else x_post)
-        pe_post, pe_prior = pe_all.split(rows)
-
-        # Soft Bellman targets with z detached (posterior) and z0 (prior critic): one actor forward.
-        with th.no_grad():
-            x_next = th.cat([next_obs, z_rows.detach()], dim=-1)
-            x0_next = th.cat([next_obs, z0_rows], dim=-1)
-            next_pe_all = evaluate_policy(self.actor, th.cat([x_next, x0_next]) if self.prior_critic is not None else x_next)
-            next_pe, next_pe0 = next_pe_all.split(rows)
-            v_next = soft_value(q_of_policy(self.critic_target, x_next, next_pe), next_pe, ent_coef)
-            target = rewards + not_done * self.gamma * v_next  # (T*B, 1)
-
-        # Critic Q(s, a, z): the only loss (with the KL) that reaches the encoder.
-        x_critic = th.cat([obs, z_rows], dim=-1)
-        critic_loss = critic_regression_loss(q_of_actions(self.critic, x_critic, actions, discrete), target)
-
-        # Prior critic Q~(s, a, z0): its own soft Bellman loss under z0.
-        prior_critic_loss = th.zeros((), device=self.device)
-        if self.prior_critic is not None:
-            assert self.prior_critic_target is not None
-            with th.no_grad():
-                v0_next = soft_value(q_of_policy(self.prior_critic_target, x0_next, next_pe0), next_pe0, ent_coef)
-                target0 = rewards + not_done * self.gamma * v0_next
-            prior_critic_loss = critic_regression_loss(q_of_actions(self.prior_critic, x_prior, actions, discrete), target0)
-
-        # Actor: L_actor(b, z.detach()) and, for PEARL+, L_actor(b, z0); critics frozen.
-        actor_loss = -soft_value(q_of_policy(self.critic.forward_frozen, x_post, pe_post), pe_post, ent_coef).mean()
-        prior_actor_loss = th.zeros((), device=self.device)
-        if use_prior:
-            prior_q = self.prior_critic if self.prior_critic is not None else self.critic  # "shared": Q(s, a, z0)
-            prior_actor_loss = -soft_value(q_of_policy(prior_q.forward_frozen, x_prior, pe_prior), pe_prior, ent_coef).mean()
-
-        ent_coef_loss = th.zeros((), device=self.device)
-        if self.log_ent_coef is not None:
-            assert isinstance(self.target_entropy, float)
-            ent_coef_loss = -(self.log_ent_coef * (entropy_log_prob(pe_post) + self.target_entropy).detach()).mean()
-
-        return PEARLLosses(
-            critic_loss=critic_loss,
-            kl_loss=kl_loss,
-            prior_critic_loss=prior_critic_loss,
-            actor_loss=actor_loss,
-            prior_actor_loss=prior_actor_loss,
-            ent_coef_loss=ent_coef_loss,
-            ent_coef=ent_coef,
-            z_mean=posterior.mean.detach(),
-            z_var=posterior.var.detach(),
-        )
+        """The losses of one gradient step for T tasks (:func:`sb3_pearl.pearl.losses.compute_losses`)."""
+        return compute_losses(self, replay, context, z0)
 
     @staticmethod
     def _named_losses(losses: PEARLLosses) -> dict[str, th.Tensor]:
@@ -457,18 +343,6 @@ class PEARL(ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
             + self.prior_coef * losses.prior_actor_loss
             + losses.ent_coef_loss
         )
-
-    def sample_posterior(self, context: th.Tensor, sample: bool = True) -> PosteriorSample:
-        """
-        Task inference, the one place where a context becomes a posterior and a z (losses, collection, adaptation).
-
-        :param context: context transitions (T, N, context_dim)
-        :param sample: draw z from q(z | c) with the reparameterisation trick, or take its mean
-        :return: posterior mean and variance and z, each (T, latent_dim)
-        """
-        mean, var = self.encoder.posterior(context)
-        z = mean + var.sqrt() * th.randn_like(mean) if sample else mean
-        return PosteriorSample(mean, var, z)
 
     def _sample_context(self, tasks: np.ndarray) -> th.Tensor:
         """``embedding_batch_size`` context transitions of each task, (len(tasks), N, context_dim)."""
@@ -581,62 +455,6 @@ class PEARL(ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
                 self.dump_logs()
         callback.on_training_end()
         return self
-
-    # ------------------------------------------------------------------------------------------
-    # Adaptation API (shared by every algorithm of the project; SB3's predict never sees rewards)
-    # ------------------------------------------------------------------------------------------
-    def reset_adaptation(self) -> None:
-        """Forget the observed context and draw z from the prior, held until :meth:`adapt` (k = 0)."""
-        self._adapt_context = []
-        self.policy.current_z = th.randn(self.latent_dim, device=self.device)
-
-    def observe(self, obs: np.ndarray, action: Any, reward: float, next_obs: np.ndarray, done: bool) -> None:
-        """
-        Record one transition of the new task (env-space action, as returned by :meth:`predict`).
-
-        :param obs: observation before the action, shape (obs_dim,)
-        :param action: the action taken (env units for Box, an index for Discrete)
-        :param reward: reward received
-        :param next_obs: observation after the action
-        :param done: whether the episode ended (not used by the encoder)
-        """
-        check_finite_transition(obs, reward, next_obs)
-        obs_dim = self.policy.obs_dim
-        obs = np.asarray(obs, dtype=np.float32).reshape(-1)
-        next_obs = np.asarray(next_obs, dtype=np.float32).reshape(-1)
-        if obs.shape != (obs_dim,) or next_obs.shape != (obs_dim,):
-            raise ValueError(f"observe() takes one transition: obs and next_obs of shape ({obs_dim},)")
-        self._adapt_context.append((obs, stored_action(self.action_space, action), float(reward), next_obs))
-
-    def _adaptation_context(self) -> th.Tensor:
-        """Everything observed since the last reset as one task's context, (1, N, context_dim)."""
-        obs, actions, rewards, next_obs = (np.stack(column) for column in zip(*self._adapt_context))
-        tensors = [
-            th.as_tensor(a, device=self.device, dtype=th.float32)[None] for a in (obs, actions, rewards[:, None], next_obs)
-        ]
-        return self.policy.make_context(*tensors)
-
-    def infer_posterior(self) -> tuple[th.Tensor, th.Tensor]:
-        """Posterior mean and variance (each (latent_dim,)) from everything observed since the last reset."""
-        if not self._adapt_context:
-            return th.zeros(self.latent_dim, device=self.device), th.ones(self.latent_dim, device=self.device)
-        with th.no_grad():
-            posterior = self.sample_posterior(self._adaptation_context(), sample=False)
-        return posterior.mean[0], posterior.var[0]
-
-    def adapt(self, sample_z: bool = True) -> None:
-        """
-        Infer the posterior from all observed transitions and act with a new z from it.
-
-        :param sample_z: draw z from the posterior (the reference's meta-test) or use its mean
-        """
-        if not self._adapt_context:  # nothing observed: a new draw from the prior
-            self.policy.current_z = (
-                th.randn(self.latent_dim, device=self.device) if sample_z else th.zeros(self.latent_dim, device=self.device)
-            )
-            return
-        with th.no_grad():
-            self.policy.current_z = self.sample_posterior(self._adaptation_context(), sample=sample_z).z[0]
 
     # ------------------------------------------------------------------------------------------
     # Save / load
