@@ -127,6 +127,8 @@ def test_report_builds_tables_and_figures(results: Path, tmp_path: Path) -> None
     assert "old" not in text.split(BEGIN)[1].split(END)[0]
     assert "| PEARL+ (alpha 0) | 0 |" in text and "| PEARL+ (alpha 0.1) | 2 |" in text
     assert "violation PEARL+ (alpha 0.1) < PEARL+ (alpha 0)" in text and "**inconclusive**" in text  # one seed
+    diagnostics = text.split("Prior diagnostics")[1].split("Wall times")[0]  # one row per diagnosed variant
+    assert "| PEARL+ (alpha 0) |" in diagnostics and "| PEARL+ (alpha 0.1) |" in diagnostics
     figure = out.parent / "figures" / "reproduce_safe-point_safe-point_smoke.png"
     assert figure.is_file() and figure.stat().st_size > 1000
     assert "figures/reproduce_safe-point_safe-point_smoke.png" in text

@@ -294,6 +294,38 @@ def shift_table(experiment: Experiment, group: Group) -> list[str]:
     return lines
 
 
+DIAGNOSTIC_COLUMNS = (
+    ("overlap", "posterior_mean_norm_avg", "posterior mean norm", 2),
+    ("overlap", "posterior_var_avg", "posterior var", 4),
+    ("overlap", "auc_gaussian", "AUC posterior vs z0", 2),
+    ("violations", "distance_mean", "z0 to nearest posterior mean", 2),
+    ("violations", "violation_rate", "k=0 violation (diag.)", 2),
+    ("violations", "z_zero_violation_rate", "violation at z=0", 2),
+    ("calibration", "bias", "prior-critic bias", 1),
+    ("calibration", "q_mc_corr_over_z0", "Q~ vs MC corr.", 2),
+    ("gradient_conflict", "ratio", "grad ratio (alpha*prior / post)", 3),
+    ("gradient_conflict", "cos", "grad cosine", 2),
+)
+
+
+def diagnostics_table(experiment: Experiment, group: Group) -> list[str]:
+    """The prior diagnostics (docs/diagnostics.md) per variant: means over the seeds that have them."""
+    header = " | ".join(label for _, _, label, _ in DIAGNOSTIC_COLUMNS)
+    lines = [f"| variant | {header} | seeds |", "|---|" + "---|" * (len(DIAGNOSTIC_COLUMNS) + 1)]
+    for variant in [v.name for v in experiment.variants if v.name in group]:
+        found = [r["diagnostics"] for r in group[variant].values() if isinstance(r.get("diagnostics"), dict)]
+        found = [d for d in found if "overlap" in d]
+        if not found:
+            continue
+        cells = []
+        for section, key, _, digits in DIAGNOSTIC_COLUMNS:
+            values = [d.get(section, {}).get(key) for d in found]
+            numbers = [float(v) for v in values if isinstance(v, (int, float))]
+            cells.append(_num(float(np.mean(numbers)), digits) if numbers else "n/a")
+        lines.append(f"| {_label(experiment, variant)} | {' | '.join(cells)} | {len(found)} |")
+    return lines if len(lines) > 2 else []
+
+
 def timing_table(experiment: Experiment, group: Group) -> list[str]:
     """Mean wall times per variant (minutes), with the CPU and the load average seen."""
     lines = [
@@ -372,6 +404,14 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         shift = shift_table(experiment, group)
         if shift:
             out += [f"Shifted test distribution: {experiment.family(family).shift_description}.", "", *shift, ""]
+        diagnostics = diagnostics_table(experiment, group)
+        if diagnostics:
+            out += [
+                "Prior diagnostics (docs/diagnostics.md; PEARL's critic stands in for the prior critic it lacks):",
+                "",
+                *diagnostics,
+                "",
+            ]
         out += ["Wall times:", "", *timing_table(experiment, group), ""]
         name = f"reproduce_{experiment_name}_{family}_{budget}.png"
         plot_group(experiment, group, Path(figures_dir) / name, title=f"{experiment.name} / {family} (budget {budget})")
