@@ -5,6 +5,8 @@
     python -m sb3_pearl.reproduce list
     python -m sb3_pearl.reproduce run table1 --family walker2d-vel --budget cpu --seeds 0-3 --jobs 2 \\
         [--variants pearl pearlplus] [--force] [--results-dir results] [--dry-run]
+    python -m sb3_pearl.reproduce run table1 --backend ray [--address auto] [--gpus-per-run 0.25] [--cpus-per-run 1] \\
+        [--retries 1] [--storage-path s3://bucket/tune]           # docs/scale.md
     python -m sb3_pearl.reproduce report [--results-dir results] [--out docs/results.md]
 """
 
@@ -13,10 +15,14 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from sb3_pearl.experiments import EXPERIMENTS, get_experiment
 from sb3_pearl.experiments.budgets import PRESETS, load_budget
 from sb3_pearl.reproduce.layout import parse_seeds
+
+BACKENDS = ("local", "ray")
+RAY_OPTIONS = ("address", "cpus_per_run", "gpus_per_run", "retries", "storage_path")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,10 +41,38 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--variants", nargs="+", default=None, help="variants of the experiment (default: all)")
     run.add_argument("--budget", default=None, choices=PRESETS, help="budget preset (default: the experiment's, cpu)")
     run.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 or 0-3,7 (default: the experiment's)")
-    run.add_argument("--jobs", type=int, default=1, help="runs at a time, one process and one torch thread each")
+    run.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="runs at a time, one process and one torch thread each (default: 1 locally, what the Ray cluster fits with ray)",
+    )
     run.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
     run.add_argument("--force", action="store_true", help="rerun runs that already have a result.json")
     run.add_argument("--dry-run", action="store_true", help="print the planned runs and their budgets, run nothing")
+    run.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="local",
+        help="local: child processes on this machine (default); ray: Ray Tune trials on a Ray cluster (docs/scale.md)",
+    )
+    ray_group = run.add_argument_group("Ray backend (--backend ray; pip install -e '.[ray]')")
+    ray_group.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster: auto, HOST:PORT or ray://HOST:PORT (default: Ray's: $RAY_ADDRESS, a `ray start` cluster "
+        "of this machine, else a local Ray for the command)",
+    )
+    ray_group.add_argument("--cpus-per-run", type=float, default=None, help="CPUs Ray reserves per run (default 1)")
+    ray_group.add_argument(
+        "--gpus-per-run", type=float, default=None, help="GPUs per run, fractions share a GPU (default 0: the run sees no GPU)"
+    )
+    ray_group.add_argument("--retries", type=int, default=None, help="times Tune retries a failed run (default 1)")
+    ray_group.add_argument(
+        "--storage-path",
+        default=None,
+        help="Ray Tune's experiment storage, a path or URI every node reaches (default: <results-dir>/.tune)",
+    )
 
     report = sub.add_parser("report", help="rebuild the tables and figures of the results page from the results")
     report.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
@@ -64,31 +98,43 @@ def _list() -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from sb3_pearl.reproduce.scheduler import plan_runs, run_experiment
+    from sb3_pearl.reproduce.scheduler import BackendUnavailableError, RunSummary, load_ray_backend, plan_runs, run_experiment
 
     experiment = get_experiment(args.experiment)
     budget = args.budget or experiment.budget
     seeds = parse_seeds(args.seeds) if args.seeds is not None else list(experiment.seeds)
+    given = [name for name in RAY_OPTIONS if getattr(args, name) is not None]
+    if args.backend != "ray" and given:
+        options = ", ".join("--" + name.replace("_", "-") for name in given)
+        raise ValueError(f"{options} only apply to --backend ray")
     if args.dry_run:
         for key in plan_runs(experiment, budget, seeds, args.family, args.variants):
             variant = experiment.variant(key.variant)
             entry = load_budget(budget, experiment.family(key.family).budget_name, variant.algo)
             print(f"{key.label()}: {variant.algo}, {entry['n_timesteps']} steps, meta-test {entry['meta_test']}")
         return 0
-    summary = run_experiment(
-        experiment,
-        budget,
-        seeds,
-        args.results_dir,
-        jobs=args.jobs,
-        families=args.family,
-        variants=args.variants,
-        force=args.force,
+    common: dict[str, Any] = dict(families=args.family, variants=args.variants, force=args.force)
+    summary: RunSummary
+    if args.backend == "ray":
+        ray_options = {name: getattr(args, name) for name in given}
+        try:
+            backend = load_ray_backend()
+        except BackendUnavailableError as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 2
+        summary = backend.run_experiment_ray(
+            experiment, budget, seeds, args.results_dir, jobs=args.jobs, **common, **ray_options
+        )
+    else:
+        summary = run_experiment(experiment, budget, seeds, args.results_dir, jobs=args.jobs or 1, **common)
+    print(
+        f"{len(summary.done)} done, {len(summary.skipped)} skipped, {len(summary.failed)} failed"
+        + (f", {len(summary.interrupted)} interrupted" if summary.interrupted else "")
     )
-    print(f"{len(summary.done)} done, {len(summary.skipped)} skipped, {len(summary.failed)} failed")
     if summary.failed:
         print("failed: " + ", ".join(key.label() for key in summary.failed), file=sys.stderr)
-    return 1 if summary.failed else 0
+        return 1
+    return 130 if summary.interrupted else 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,13 +1,20 @@
 """Runs of an experiment as separate processes, ``jobs`` at a time, with a progress line and an ETA per finished run.
 
-Every (family, variant, seed) is its own child process (``python -m sb3_pearl.reproduce run-one``)
-with ``OMP_NUM_THREADS=1`` / ``MKL_NUM_THREADS=1`` (and one torch thread inside), its stdout and
-stderr in the run folder's ``run.log``. A run whose ``result.json`` exists is skipped unless
-``force``; a run whose result was written with another budget preset is an error.
+This is the ``local`` backend of ``python -m sb3_pearl.reproduce run`` (the default). Every (family,
+variant, seed) is its own child process (``python -m sb3_pearl.reproduce run-one``) with
+``OMP_NUM_THREADS=1`` / ``MKL_NUM_THREADS=1`` (and one torch thread inside), its stdout and stderr in
+the run folder's ``run.log``. A run whose ``result.json`` exists is skipped unless ``force``; a run
+whose result was written with another budget preset is an error.
+
+What both backends share lives here: :func:`plan_runs`, :func:`select_pending` (the idempotence rule),
+:class:`Progress` (the progress lines) and :class:`RunSummary`. The ``ray`` backend, each run a Ray
+Tune trial, is :mod:`sb3_pearl.reproduce.ray_backend` (optional: ``pip install -e ".[ray]"``), loaded
+through :func:`load_ray_backend`.
 """
 
 from __future__ import annotations
 
+import importlib
 import math
 import os
 import subprocess
@@ -15,6 +22,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from types import ModuleType
 from typing import BinaryIO
 
 from sb3_pearl.experiments.budgets import load_budget
@@ -22,14 +30,38 @@ from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.reproduce.layout import LOG_FILE, RESULT_FILE, RunKey, run_dir
 from sb3_pearl.reproduce.runner import existing_result, run_kwargs
 
+#: environment of every run, whatever the backend: one thread per run (torch also gets ``set_num_threads(1)``)
+RUN_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+RAY_MISSING = '--backend ray needs Ray, which is not installed: pip install -e ".[ray]"'
+
+
+class BackendUnavailableError(RuntimeError):
+    """A backend whose optional dependency is not installed (``--backend ray`` without Ray)."""
+
+
+def load_ray_backend() -> ModuleType:
+    """
+    Import :mod:`sb3_pearl.reproduce.ray_backend`, or say in one line how to install Ray.
+
+    :return: the module
+    :raises BackendUnavailableError: Ray cannot be imported
+    """
+    try:
+        return importlib.import_module("sb3_pearl.reproduce.ray_backend")
+    except ImportError as error:
+        if (error.name or "").split(".")[0] == "ray":
+            raise BackendUnavailableError(RAY_MISSING) from error
+        raise
+
 
 @dataclass
 class RunSummary:
-    """What :func:`run_experiment` did."""
+    """What a backend did: runs done, skipped (complete already), failed, and not finished (interrupted)."""
 
     done: list[RunKey] = field(default_factory=list)
     skipped: list[RunKey] = field(default_factory=list)
     failed: list[RunKey] = field(default_factory=list)
+    interrupted: list[RunKey] = field(default_factory=list)
 
 
 def plan_runs(
@@ -67,13 +99,85 @@ def plan_runs(
     return runs
 
 
-def _format_duration(seconds: float) -> str:
+def select_pending(
+    runs: Sequence[RunKey],
+    budget_preset: str,
+    results_dir: str | os.PathLike[str],
+    force: bool,
+    summary: RunSummary,
+    echo: Callable[[str], None] = print,
+) -> list[RunKey]:
+    """
+    The idempotence rule of both backends: a run whose ``result.json`` exists is skipped unless ``force``.
+
+    :param runs: the planned runs
+    :param budget_preset: the preset of the requested runs (a result of another preset is an error)
+    :param results_dir: root of the results layout
+    :param force: rerun complete runs
+    :param summary: receives the skipped runs
+    :param echo: where the skip lines go
+    :return: the runs to do
+    """
+    pending: list[RunKey] = []
+    for key in runs:
+        folder = run_dir(results_dir, key)
+        if not force and existing_result(folder, budget_preset) is not None:
+            summary.skipped.append(key)
+            echo(f"skip {key.label()}: {folder / RESULT_FILE} exists (--force reruns it)")
+            continue
+        pending.append(key)
+    return pending
+
+
+def format_duration(seconds: float) -> str:
+    """``1h02m`` or ``3m07s``; ``?`` for nan."""
     if not math.isfinite(seconds):
         return "?"
     seconds = int(round(seconds))
     hours, rest = divmod(seconds, 3600)
     minutes, secs = divmod(rest, 60)
     return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{secs:02d}s"
+
+
+@dataclass
+class Progress:
+    """
+    The progress line of a finished run: ``[n/total] label: status in 0m09s; elapsed 0m30s, ETA 1m12s``.
+
+    The ETA is ``ceil(remaining / slots)`` times the mean duration of the runs done so far.
+
+    :param total: runs to do
+    :param slots: runs at a time
+    :param echo: where the lines go
+    """
+
+    total: int
+    slots: int
+    echo: Callable[[str], None] = print
+    started: float = field(default_factory=time.time)
+    durations: list[float] = field(default_factory=list)
+    finished: int = 0
+
+    def line(self, key: RunKey, ok: bool, elapsed: float, failure: str = "") -> None:
+        """
+        Count a finished run and echo its line.
+
+        :param key: the run
+        :param ok: it wrote its result.json
+        :param elapsed: its wall time in seconds
+        :param failure: the status of a failed run (``FAILED (...)``)
+        """
+        self.finished += 1
+        if ok:
+            self.durations.append(elapsed)
+        remaining = max(self.total - self.finished, 0)
+        mean = sum(self.durations) / len(self.durations) if self.durations else math.nan
+        eta = math.ceil(remaining / max(self.slots, 1)) * mean if remaining else 0.0
+        status = "done" if ok else failure or "FAILED"
+        self.echo(
+            f"[{self.finished}/{self.total}] {key.label()}: {status} in {format_duration(elapsed)}; "
+            f"elapsed {format_duration(time.time() - self.started)}, ETA {format_duration(eta)}"
+        )
 
 
 def child_command(key: RunKey, budget_preset: str, results_dir: str | os.PathLike[str]) -> list[str]:
@@ -118,20 +222,13 @@ def run_experiment(
     if jobs < 1:
         raise ValueError(f"--jobs must be >= 1, got {jobs}")
     summary = RunSummary()
-    pending: list[RunKey] = []
-    for key in plan_runs(experiment, budget_preset, seeds, families, variants):
-        folder = run_dir(results_dir, key)
-        if not force and existing_result(folder, budget_preset) is not None:
-            summary.skipped.append(key)
-            echo(f"skip {key.label()}: {folder / RESULT_FILE} exists (--force reruns it)")
-            continue
-        pending.append(key)
+    runs = plan_runs(experiment, budget_preset, seeds, families, variants)
+    pending = select_pending(runs, budget_preset, results_dir, force, summary, echo)
     total = len(pending)
     echo(f"{experiment.name}: {total} run(s) to do, {len(summary.skipped)} skipped, budget {budget_preset}, {jobs} at a time")
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    env = {**os.environ, **RUN_ENV}
     running: dict[RunKey, tuple[subprocess.Popen[bytes], float, BinaryIO]] = {}
-    durations: list[float] = []
-    started = time.time()
+    progress = Progress(total, jobs, echo)
     queue = list(pending)
     while queue or running:
         while queue and len(running) < jobs:
@@ -156,18 +253,20 @@ def run_experiment(
             folder = run_dir(results_dir, key)
             ok = process.returncode == 0 and (folder / RESULT_FILE).is_file()
             (summary.done if ok else summary.failed).append(key)
-            if ok:
-                durations.append(elapsed)
-            n_finished = len(summary.done) + len(summary.failed)
-            remaining = total - n_finished
-            mean = sum(durations) / len(durations) if durations else math.nan
-            eta = math.ceil(remaining / jobs) * mean if remaining else 0.0
-            status = "done" if ok else f"FAILED (exit {process.returncode}, see {folder / LOG_FILE})"
-            echo(
-                f"[{n_finished}/{total}] {key.label()}: {status} in {_format_duration(elapsed)}; "
-                f"elapsed {_format_duration(time.time() - started)}, ETA {_format_duration(eta)}"
-            )
+            progress.line(key, ok, elapsed, f"FAILED (exit {process.returncode}, see {folder / LOG_FILE})")
     return summary
 
 
-__all__ = ["RunSummary", "child_command", "plan_runs", "run_experiment"]
+__all__ = [
+    "RAY_MISSING",
+    "RUN_ENV",
+    "BackendUnavailableError",
+    "Progress",
+    "RunSummary",
+    "child_command",
+    "format_duration",
+    "load_ray_backend",
+    "plan_runs",
+    "run_experiment",
+    "select_pending",
+]
