@@ -1,9 +1,9 @@
 """``make demo``: PEARL and PEARL+ on SafePointGoalMeta-v0 through train.py's pipeline, then the meta-test table.
 
-Each algorithm is trained with the fast entry of ``zoo_hyperparams/<algo>.yml`` (about 1.5 minutes
-per algorithm on one core) by :func:`sb3_pearl.zoo.train` (``rl_zoo3.train.train()``), which writes the
-usual zoo run folder ``logs/<algo>/SafePointGoalMeta-v0_<n>/`` with ``meta_test.csv``,
-``meta_test.json`` and ``adaptation.png``. The demo then prints the paper's columns (trajectories
+Each algorithm is trained with the fast entry of ``zoo_hyperparams/<algo>.yml`` (measured with its final
+meta-test: PEARL 106 s, PEARL+ 148 s of CPU on one core; docs/cli.md) by :func:`sb3_pearl.zoo.train`
+(``rl_zoo3.train.train()``), which writes the usual zoo run folder ``logs/<algo>/SafePointGoalMeta-v0_<n>/``
+with ``meta_test.csv``, ``meta_test.json`` and ``adaptation.png``. The demo then prints the paper's columns (trajectories
 k = 0, 1, 3, 5: mean return and violation rate over the held-out tasks) and writes a comparison figure.
 
     python -m sb3_pearl.demo                      # both algorithms, the YAML budget

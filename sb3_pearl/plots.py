@@ -4,10 +4,11 @@ Command line, over one or more run folders (each holding ``meta_test.json``) or 
 
     python -m sb3_pearl.plots logs/pearl/SafePointGoalMeta-v0_1 logs/pearlplus/SafePointGoalMeta-v0_1 -o cmp.png
 
-writes ``cmp.png`` (adaptation curves: return and violation rate vs k, one line per run),
-``cmp_violations.png`` (violation-rate bars at k = 0, 1, 3, 5) and, when the runs recorded them,
-``cmp_b_min.png`` (the rows hold ``b_min``: the merge family) and ``cmp_speed.png`` (per-step
-traces: the first of the family's ``step_trace_keys`` found, e.g. the merge family's ``ego_speed``).
+writes ``cmp.png`` (adaptation curves: return and violation rate vs k, one line per run; without ``-o``:
+``plots.png`` in the first run's folder), ``cmp_violations.png`` (violation-rate bars at k = 0, 1, 3, 5)
+and, when the runs recorded them, ``cmp_b_min.png`` (the rows hold ``b_min``: the merge family) and
+``cmp_speed.png`` (per-step traces: the first of the family's ``step_trace_keys`` found, e.g. the merge
+family's ``ego_speed``).
 ``--kind`` picks one figure.
 """
 
@@ -31,6 +32,10 @@ from sb3_pearl.common.meta_test import PAPER_KS, MetaTestResult  # noqa: E402
 KINDS = ("adaptation", "violations", "b_min", "speed")
 # The merge family's per-trajectory minimum braking at the merge [m/s^2] (a trajectory info key of its rows).
 B_MIN_KEY = "b_min"
+
+
+# The first figure's name without -o (next to the run's own adaptation.png, which the final meta-test wrote).
+DEFAULT_OUTPUT = "plots.png"
 
 
 def load_run(path: str | os.PathLike[str]) -> tuple[str, MetaTestResult]:
@@ -272,18 +277,35 @@ def plot_all(
     return written
 
 
+def default_output(run: str | os.PathLike[str]) -> Path:
+    """
+    Where the figures go without ``-o``: :data:`DEFAULT_OUTPUT` in the run's folder (the folder of a JSON file given).
+
+    :param run: the first run folder or ``meta_test.json`` of the command line
+    :return: the path of the first figure
+    """
+    path = Path(run)
+    return (path if path.is_dir() else path.parent) / DEFAULT_OUTPUT
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Command line: ``python -m sb3_pearl.plots RUN_DIR [RUN_DIR ...] -o out.png``."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="+", help="run folders (logs/<algo>/<EnvId>_<n>) or meta_test.json files")
-    parser.add_argument("-o", "--output", default="adaptation.png", help="PNG file of the first figure")
+    parser.add_argument(
+        "-o",
+        "--output",
+        default=None,
+        help=f"PNG file of the first figure (default: {DEFAULT_OUTPUT} in the first run's folder)",
+    )
     parser.add_argument("--kind", choices=[*KINDS, "all"], default="all", help="which figure (default: every one with data)")
     parser.add_argument("--labels", nargs="+", default=None, help="legend labels, one per run")
     parser.add_argument("--title", default="", help="figure title")
     args = parser.parse_args(argv)
     runs = load_runs(args.runs, args.labels)
     kinds = KINDS if args.kind == "all" else (args.kind,)
-    for path in plot_all(runs, args.output, kinds, args.title):
+    output = args.output or default_output(args.runs[0])
+    for path in plot_all(runs, output, kinds, args.title):
         print(f"Saved {path}")
 
 

@@ -11,7 +11,7 @@ from sb3_pearl import PEARL, PEARLPlus
 
 PACKAGE = Path(__file__).resolve().parent.parent / "sb3_pearl"
 ALGORITHMS = {"pearl", "finetune", "maml"}
-TOOLS = {"zoo", "reproduce", "experiments", "plots", "demo", "diagnose"}
+TOOLS = {"zoo", "reproduce", "experiments", "plots", "demo", "diagnose", "train", "enjoy"}
 MAX_LINES = 550  # "no source file over ~500 lines"
 
 

@@ -38,7 +38,7 @@ class MetaTestCallback(BaseCallback):
     :param seed: seed of the task draw and of the env's first reset
     :param best_model_save_path: folder of ``best_model.zip`` (None: not saved)
     :param log_path: folder of ``meta_test_history.csv`` (None: not written)
-    :param verbose: 0 silent, 1 one line per evaluation
+    :param verbose: 0 silent, 1 a progress bar and one line per evaluation
     """
 
     def __init__(
@@ -97,6 +97,8 @@ class MetaTestCallback(BaseCallback):
             n_repeats=self.n_repeats,
             deterministic=self.deterministic,
             seed=self.seed,
+            progress_bar=self.verbose >= 1,
+            description="Meta-test (Ctrl-C stops training)",
         )
         self.model.reset_adaptation()  # type: ignore[attr-defined]
         self.last_result = result
@@ -113,9 +115,11 @@ class MetaTestCallback(BaseCallback):
         self.logger.record("meta_test/cum_violations", adapted["cum_violations"])
         self.last_mean_reward = float(adapted["return_mean"])
         if self.verbose >= 1:
+            untrained = " (no gradient step yet: the initial collection)" if getattr(self.model, "_n_updates", 1) == 0 else ""
             print(
-                f"Meta-test num_timesteps={self.num_timesteps}: return k=0 {prior['return_mean']:.2f}, "
-                f"k={self.n_adapt} {adapted['return_mean']:.2f}; violation rate k=0 {prior['violation_rate']:.2f}"
+                f"Meta-test num_timesteps={self.num_timesteps} over {len(self.tasks)} test tasks x {self.n_repeats} "
+                f"repeat(s): return k=0 {prior['return_mean']:.2f}, k={self.n_adapt} {adapted['return_mean']:.2f}; "
+                f"violation rate k=0 {prior['violation_rate']:.2f}{untrained}"
             )
         if self.log_path is not None:
             self._append_history(result)

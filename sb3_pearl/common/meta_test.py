@@ -34,6 +34,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from sb3_pearl.common.adaptation import AdaptiveModel, check_adaptive
 from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.common.progress import ProgressBar
 from sb3_pearl.common.seeding import derived_seed, get_global_rng_state, seed_global_rngs, set_global_rng_state
 from sb3_pearl.common.statistics import format_summary_table, summarize
 from sb3_pearl.envs.task_protocol import Task
@@ -308,6 +309,8 @@ def meta_test(
     trace_keys: Sequence[str] | None = None,
     on_trajectory_start: Callable[[int, int, int], None] | None = None,
     crn_seed: int | None = None,
+    progress_bar: bool = False,
+    description: str = "Meta-test",
 ) -> MetaTestResult:
     """
     The meta-test protocol (module docstring) on ``tasks``.
@@ -331,6 +334,9 @@ def meta_test(
         ``reset_adaptation()`` and the posterior samples are drawn from the same numbers for every
         model of the same latent size; every trajectory's reset is seeded from (crn_seed, task index,
         repeat, k) (instead of ``seed``). The global RNG states are restored afterwards. None: off
+    :param progress_bar: show a progress bar over the trajectories, with the ETA
+        (:class:`~sb3_pearl.common.progress.ProgressBar`)
+    :param description: the bar's text (e.g. what Ctrl-C does)
     :return: rows, summary, traces and the settings
     """
     check_adaptive(model)
@@ -348,25 +354,32 @@ def meta_test(
     rows: list[dict[str, Any]] = []
     traces: list[dict[str, Any]] = []
     saved_rng = get_global_rng_state() if crn_seed is not None else None
-    for task_index, task in enumerate(tasks):
-        runner.set_task(task)
-        for repeat in range(n_repeats):
-            if crn_seed is not None:
-                seed_global_rngs(crn_seed, task_index, repeat)
-            model.reset_adaptation()
-            for k in range(n_adapt + 1):
-                if k > 0:
-                    model.adapt()  # posterior from trajectories 0..k-1
-                if on_trajectory_start is not None:
-                    on_trajectory_start(task_index, repeat, k)
+    bar = ProgressBar(description, len(tasks) * n_repeats * (n_adapt + 1), "trajectories") if progress_bar else None
+    try:
+        for task_index, task in enumerate(tasks):
+            runner.set_task(task)
+            for repeat in range(n_repeats):
                 if crn_seed is not None:
-                    runner.seed(derived_seed(crn_seed, task_index, repeat, k))
-                values, trace = rollout(model, runner, deterministic, max_steps, trace_keys, info_keys)
-                rows.append({"task": task_index, "repeat": repeat, "k": k, **values})
-                if trace:
-                    traces.append({"task": task_index, "repeat": repeat, "k": k, **trace})
-    if saved_rng is not None:
-        set_global_rng_state(saved_rng)
+                    seed_global_rngs(crn_seed, task_index, repeat)
+                model.reset_adaptation()
+                for k in range(n_adapt + 1):
+                    if k > 0:
+                        model.adapt()  # posterior from trajectories 0..k-1
+                    if on_trajectory_start is not None:
+                        on_trajectory_start(task_index, repeat, k)
+                    if crn_seed is not None:
+                        runner.seed(derived_seed(crn_seed, task_index, repeat, k))
+                    values, trace = rollout(model, runner, deterministic, max_steps, trace_keys, info_keys)
+                    rows.append({"task": task_index, "repeat": repeat, "k": k, **values})
+                    if trace:
+                        traces.append({"task": task_index, "repeat": repeat, "k": k, **trace})
+                    if bar is not None:
+                        bar.advance()
+    finally:
+        if bar is not None:
+            bar.close()
+        if saved_rng is not None:
+            set_global_rng_state(saved_rng)
     config = {
         "n_tasks": len(tasks),
         "n_adapt": n_adapt,

@@ -19,7 +19,7 @@ import numpy as np
 from gymnasium.envs.mujoco.half_cheetah_v5 import HalfCheetahEnv
 from gymnasium.utils import EzPickle
 
-from sb3_pearl.envs.locomotion import check_range
+from sb3_pearl.envs.locomotion import check_range, ignore_mujoco_warning
 from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task
 
 
@@ -45,7 +45,8 @@ class HalfCheetahVelMetaEnv(MetaTaskEnv, HalfCheetahEnv):
         self.velocity_low = float(velocity_low)
         self.velocity_high = float(velocity_high)
         self._init_task()  # before the MuJoCo init: nothing may read the task before it exists
-        HalfCheetahEnv.__init__(self, ctrl_cost_weight=ctrl_cost_weight, **kwargs)
+        with ignore_mujoco_warning("compiler attribute 'settotalmass' is deprecated"):  # Gymnasium's half_cheetah.xml
+            HalfCheetahEnv.__init__(self, ctrl_cost_weight=ctrl_cost_weight, **kwargs)
         EzPickle.__init__(self, velocity_low, velocity_high, ctrl_cost_weight, **kwargs)
 
     def _sample_task(self, rng: np.random.Generator) -> Task:

@@ -19,11 +19,43 @@ from its task ranges (documented there); ``unhealthy_penalty=0`` gives the bare 
 from __future__ import annotations
 
 import math
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
 
 from sb3_pearl.envs.task_protocol import MetaTaskEnv
+
+
+@contextmanager
+def ignore_mujoco_warning(prefix: str) -> Iterator[None]:
+    """
+    Drop the MuJoCo warnings that start with ``prefix`` inside the block; any other is printed as MuJoCo prints it.
+
+    E.g. the deprecation of ``settotalmass`` by MuJoCo >= 3.3, which Gymnasium's own ``half_cheetah.xml`` uses
+    (the model is Gymnasium's, the fix is theirs).
+
+    :param prefix: the start of the message
+    """
+    import mujoco
+
+    previous = mujoco.get_mju_user_warning()
+
+    def handler(message: str) -> None:
+        if message.startswith(prefix):
+            return
+        if previous is not None:
+            previous(message)
+        else:
+            print(f"WARNING: {message}\n", file=sys.stderr, flush=True)
+
+    mujoco.set_mju_user_warning(handler)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
 
 
 def check_range(name: str, low: float, high: float, *, allow_empty: bool = False, min_value: float | None = None) -> None:

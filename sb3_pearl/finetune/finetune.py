@@ -10,6 +10,7 @@ after :meth:`FineTune.reset_adaptation`).
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
@@ -21,7 +22,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFrequencyUnit
 from stable_baselines3.common.utils import ConstantSchedule, get_parameters_by_name
 from stable_baselines3.sac.policies import SACPolicy
 
@@ -39,6 +40,7 @@ from sb3_pearl.common.checks import (
 )
 from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin
+from sb3_pearl.common.progress import TrainingPlan
 from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
@@ -348,6 +350,24 @@ class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
             reset_num_timesteps=reset_num_timesteps,
             progress_bar=progress_bar,
         )
+
+    def training_plan(self, total_timesteps: int) -> TrainingPlan | None:
+        """
+        What ``learn(total_timesteps)`` will still collect and train (SB3's off-policy loop: after each rollout of
+        ``train_freq`` steps per env, once past ``learning_starts``, ``gradient_steps`` steps); None for a
+        ``train_freq`` counted in episodes.
+        """
+        if self.train_freq.unit != TrainFrequencyUnit.STEP:  # type: ignore[union-attr]
+            return None
+        remaining = max(total_timesteps - self.num_timesteps, 0)
+        chunk = self.train_freq.frequency * self.n_envs  # type: ignore[union-attr]
+        rollouts = math.ceil(remaining / chunk)
+        first_training = max(self.learning_starts - self.num_timesteps, 0) // chunk  # the first rollout followed by train()
+        per_rollout = self.gradient_steps if self.gradient_steps >= 0 else chunk
+        updates = max(rollouts - first_training, 0) * per_rollout
+        initial = min(max(self.learning_starts - self.num_timesteps, 0), remaining)
+        note = f"learning_starts {self.learning_starts:,}" if initial > 0 else ""
+        return TrainingPlan(remaining, updates, initial, first_updates=min(1000, updates), note=note)
 
     # ------------------------------------------------------------------------------------------
     # Adaptation API (shared by every algorithm of the project; SB3's predict never sees rewards)

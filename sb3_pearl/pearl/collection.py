@@ -6,10 +6,12 @@ collects ``num_steps_prior`` steps with z from the prior, ``num_steps_posterior`
 the posterior (both also stored as context) and ``num_extra_rl_steps_posterior`` posterior steps for
 the RL buffer only. z is drawn once per trajectory. Each visit is a *program*: a list of
 :class:`Segment`, run in order on one env; with ``n_envs > 1`` every env runs its own program.
+:func:`plan_training` counts what ``learn`` will collect and train (the progress callback's ETA).
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -19,6 +21,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.divergence import check_env_step, check_finite_actions
+from sb3_pearl.common.progress import TrainingPlan
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL
@@ -149,3 +152,38 @@ def collect_iteration(
     model._last_obs = obs
     callback.on_rollout_end()
     return collected, planned, True
+
+
+def plan_training(model: PEARL, total_timesteps: int) -> TrainingPlan:
+    """
+    What ``learn(total_timesteps)`` will still do: iteration 0's initial data (if some training task has none yet),
+    then full iterations and maybe a partial last one, whose gradient steps are scaled as ``learn`` scales them.
+
+    :param model: the model (its counters and replay buffer: a resumed run plans what is left)
+    :param total_timesteps: the ``learn`` budget, counted from 0
+    :return: the plan
+    """
+    remaining = max(total_timesteps - model.num_timesteps, 0)
+    steps = model.num_train_steps_per_itr
+    without_data = int(np.count_nonzero(model.replay_buffer.rl.size == 0)) if model.num_initial_steps > 0 else 0
+    chunks: list[tuple[int, int]] = []  # (collected, planned) per iteration
+    if without_data > 0 and remaining > 0:
+        planned = model.num_initial_steps * without_data
+        chunks.append((min(planned, remaining), planned))
+        remaining -= chunks[-1][0]
+    per_iteration = model.num_tasks_sample * (
+        model.num_steps_prior + model.num_steps_posterior + model.num_extra_rl_steps_posterior
+    )
+    full, rest = divmod(remaining, per_iteration) if per_iteration > 0 else (0, 0)
+    updates = [math.ceil(steps * collected / planned) for collected, planned in chunks]
+    updates += [steps] * full + ([math.ceil(steps * rest / per_iteration)] if rest > 0 else [])
+    initial = chunks[0][0] if chunks else 0
+    return TrainingPlan(
+        env_steps=max(total_timesteps - model.num_timesteps, 0),
+        gradient_steps=sum(updates),
+        initial_steps=initial,
+        first_updates=updates[0] if updates else 0,
+        note=f"iteration 0: {model.num_initial_steps:,} steps with z from the prior on each of {without_data} training tasks"
+        if initial
+        else "",
+    )

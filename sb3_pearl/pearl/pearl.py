@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import math
 import pathlib
+from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -25,12 +26,13 @@ from sb3_pearl.common.diagnostics import record_gradient_conflict
 from sb3_pearl.common.divergence import NonFiniteUpdateGuard
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, check_buffer_tasks, read_replay_buffer
 from sb3_pearl.common.precision import resolve_bf16
+from sb3_pearl.common.progress import TrainingPlan
 from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.pearl.adaptation import PosteriorAdaptationMixin
 from sb3_pearl.pearl.arguments import check_pearl_arguments
-from sb3_pearl.pearl.collection import collect_iteration, plan_iteration
+from sb3_pearl.pearl.collection import collect_iteration, plan_iteration, plan_training
 from sb3_pearl.pearl.losses import compute_losses
 from sb3_pearl.pearl.policies import PEARLPolicy
 
@@ -118,6 +120,8 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before set-up).
     prior_coef: float = 0.0
     prior_critic_mode: str = "none"
+    # Called after every gradient step of train() while set (the progress callback sets it during learn()); never saved.
+    gradient_step_callback: Callable[[], None] | None = None
 
     def __init__(
         self,
@@ -394,6 +398,8 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
             polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
             if self.prior_critic is not None and self.prior_critic_target is not None:
                 polyak_update(self.prior_critic.parameters(), self.prior_critic_target.parameters(), self.tau)
+            if self.gradient_step_callback is not None:
+                self.gradient_step_callback()
             for key, value in (
                 ("critic_loss", losses.critic_loss),
                 ("kl", losses.kl_loss),
@@ -456,6 +462,10 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
         callback.on_training_end()
         return self
 
+    def training_plan(self, total_timesteps: int) -> TrainingPlan:
+        """What ``learn(total_timesteps)`` will still collect and train (:func:`~sb3_pearl.pearl.collection.plan_training`)."""
+        return plan_training(self, total_timesteps)
+
     # ------------------------------------------------------------------------------------------
     # Save / load
     # ------------------------------------------------------------------------------------------
@@ -471,6 +481,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
             "_adapt_context",
             "_update_guard",
             "_bf16_enabled",
+            "gradient_step_callback",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

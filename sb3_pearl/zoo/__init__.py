@@ -6,7 +6,12 @@
   and the PEARL / PEARL+ Optuna samplers), :func:`constructor_kwargs`;
 - :mod:`sb3_pearl.zoo.experiment_manager`: :class:`MetaExperimentManager` (rl_zoo3's
   ``ExperimentManager`` with the project's hyperparameter files and the meta-test) and :func:`train`;
-- :mod:`sb3_pearl.zoo.replay`: :func:`enjoy`, prior and posterior rollouts of a trained model.
+- :mod:`sb3_pearl.zoo.replay`: :func:`enjoy`, prior and posterior rollouts of a trained model;
+- :mod:`sb3_pearl.zoo.budget`: ``train.py --budget PRESET`` (a budget preset's entry as the hyperparameters);
+- :mod:`sb3_pearl.zoo.usage`: :class:`UsageError`, user errors printed as one line with exit status 2.
+
+After ``pip install``, ``python -m sb3_pearl.train`` / ``python -m sb3_pearl.enjoy`` (``sb3-pearl-train`` /
+``sb3-pearl-enjoy``) run them from anywhere; ``python -m sb3_pearl.zoo`` prints how.
 """
 
 from sb3_pearl.zoo.experiment_manager import (
@@ -28,12 +33,14 @@ from sb3_pearl.zoo.registry import (
     sample_pearlplus_params,
 )
 from sb3_pearl.zoo.replay import enjoy, enjoy_parser
+from sb3_pearl.zoo.usage import UsageError
 
 __all__ = [
     "HYPERPARAMS_DIR",
     "META_TEST_DEFAULTS",
     "ZOO_SPECIAL_KEYS",
     "MetaExperimentManager",
+    "UsageError",
     "check_model_env",
     "check_model_spaces",
     "constructor_kwargs",

@@ -7,7 +7,10 @@ as the evaluation callback (``--eval-freq``, ``--eval-episodes`` test tasks, log
 ``meta_test/...``, ``best_model.zip``) and as the Optuna trial score; and, after the model is
 saved (also after Ctrl-C), the final meta-test written to ``meta_test.csv``, ``meta_test.json``
 and ``adaptation.png`` in the run folder. :func:`train` runs ``rl_zoo3.train.train()`` with it and
-the project's algorithms (argument parsing, log layout and the Optuna loop are rl_zoo3's).
+the project's algorithms (argument parsing, log layout and the Optuna loop are rl_zoo3's), plus the flag
+``--budget PRESET`` (a family's entry of a budget preset, :mod:`sb3_pearl.zoo.budget`), the cost of the run
+announced and measured (:class:`~sb3_pearl.common.progress.TrainingProgressCallback`, also ``-P``'s progress bar)
+and user errors as one line with exit status 2 (:mod:`sb3_pearl.zoo.usage`).
 
 The zoo special key ``meta_test`` (a dict, optional) sets the final meta-test:
 ``n_adapt`` (K, default 5), ``n_repeats`` (1), ``n_tasks`` (None: every saved test task),
@@ -17,15 +20,19 @@ The zoo special key ``meta_test`` (a dict, optional) sets the final meta-test:
 
 from __future__ import annotations
 
+import argparse
 import functools
 import glob
+import importlib
 import importlib.util
 import os
 import signal
 import sys
 import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
+from pprint import pprint
 from types import FrameType
 from typing import Any, ClassVar
 
@@ -34,7 +41,7 @@ import rl_zoo3.train
 from rl_zoo3 import ALGOS
 from rl_zoo3.exp_manager import ExperimentManager
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import CheckpointCallback
+from stable_baselines3.common.callbacks import CheckpointCallback, ProgressBarCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import has_adaptation_api
@@ -45,11 +52,23 @@ from sb3_pearl.common.callbacks import (
     checkpoint_replay_buffer_path,
 )
 from sb3_pearl.common.meta_test import MetaTestResult, get_test_tasks, meta_test
+from sb3_pearl.common.progress import TrainingProgressCallback
+from sb3_pearl.zoo.budget import budget_hyperparams, faster_option
 from sb3_pearl.zoo.registry import constructor_kwargs, register_algos
 from sb3_pearl.zoo.safe_config import load_run_yaml, parse_dict_string
+from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, check_env_id, exit_on_usage_error, program_name
 
-# The repository's zoo_hyperparams/ folder (this file is sb3_pearl/zoo/experiment_manager.py).
-HYPERPARAMS_DIR = Path(__file__).resolve().parents[2] / "zoo_hyperparams"
+
+def _hyperparams_dir() -> Path:
+    """
+    ``zoo_hyperparams/``: the repository's folder in a checkout (the source), else the copy packaged with an installed
+    sb3_pearl (``sb3_pearl/zoo/hyperparams/``, copied by setup.py's build step).
+    """
+    checkout = Path(__file__).resolve().parents[2] / "zoo_hyperparams"  # this file is sb3_pearl/zoo/experiment_manager.py
+    return checkout if checkout.is_dir() else Path(__file__).resolve().parent / "hyperparams"
+
+
+HYPERPARAMS_DIR = _hyperparams_dir()
 
 # Keys the zoo reads itself (rl_zoo3 ExperimentManager._preprocess_*), never constructor kwargs.
 ZOO_SPECIAL_KEYS = frozenset(
@@ -112,6 +131,8 @@ class MetaExperimentManager(ExperimentManager):
 
     # Set by train() for --resume: -i continues the checkpoint's run (counters kept) up to n_timesteps in all.
     resume: ClassVar[bool] = False
+    # Set by train() for --budget PRESET: the family's entry of that budget preset replaces the YAML entry.
+    budget: ClassVar[str | None] = None
 
     def __init__(self, args: Any, algo: str, env_id: str, log_folder: str, *posargs: Any, **kwargs: Any) -> None:
         if kwargs.get("config") is None and os.path.isfile(default_config(algo)):
@@ -124,10 +145,27 @@ class MetaExperimentManager(ExperimentManager):
 
     # -- hyperparameters ---------------------------------------------------------------------------
     def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
-        if not os.path.isfile(self.config) and self.config.endswith((".yml", ".yaml")):
-            raise FileNotFoundError(f"hyperparameter file {self.config} not found (expected zoo_hyperparams/{self.algo}.yml)")
-        hyperparams, saved_hyperparams = super().read_hyperparameters()
+        if self.budget is not None:
+            hyperparams, saved_hyperparams = self._read_budget(self.budget)
+        else:
+            if not os.path.isfile(self.config) and self.config.endswith((".yml", ".yaml")):
+                raise UsageError(f"hyperparameter file {self.config} not found (expected zoo_hyperparams/{self.algo}.yml)")
+            try:
+                hyperparams, saved_hyperparams = super().read_hyperparameters()
+            except ValueError as error:  # e.g. no entry for the env in the file
+                raise UsageError(str(error)) from error
         self.check_hyperparameters(hyperparams)
+        return hyperparams, saved_hyperparams
+
+    def _read_budget(self, preset: str) -> tuple[dict[str, Any], dict[str, Any]]:
+        """rl_zoo3's ``read_hyperparameters`` with the entry of a budget preset instead of the YAML file's."""
+        hyperparams = budget_hyperparams(preset, self.env_name.gym_id, self.algo)
+        print(f"Loading hyperparameters from: the {preset} budget preset (sb3_pearl/experiments/presets/{preset}.yml)")
+        if self.custom_hyperparams is not None:
+            hyperparams.update(self.custom_hyperparams)
+        saved_hyperparams = OrderedDict((key, hyperparams[key]) for key in sorted(hyperparams))
+        print("Default hyperparameters for environment (ones being tuned will be overridden):")
+        pprint(saved_hyperparams)
         return hyperparams, saved_hyperparams
 
     def check_hyperparameters(self, hyperparams: dict[str, Any]) -> None:
@@ -142,7 +180,7 @@ class MetaExperimentManager(ExperimentManager):
         if unknown:
             overridden = sorted(set(unknown) & set(self.custom_hyperparams or {}))
             where = f"-params ({', '.join(overridden)})" if overridden else f"{self.config} [{self.env_name.gym_id}]"
-            raise ValueError(
+            raise UsageError(
                 f"{algo_class.__name__} does not take the hyperparameter(s) {unknown} given in {where}. "
                 f"Accepted constructor kwargs: {sorted(accepted)}; zoo keys: {sorted(ZOO_SPECIAL_KEYS)}"
             )
@@ -150,7 +188,7 @@ class MetaExperimentManager(ExperimentManager):
         if isinstance(meta, str):  # the zoo's convention for dict values given as strings, parsed without eval()
             meta = parse_dict_string(meta, "meta_test")
         if not isinstance(meta, dict) or set(meta) - set(META_TEST_DEFAULTS):
-            raise ValueError(f"meta_test must be a dict with keys among {sorted(META_TEST_DEFAULTS)}, got {meta!r}")
+            raise UsageError(f"meta_test must be a dict with keys among {sorted(META_TEST_DEFAULTS)}, got {meta!r}")
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
         meta = hyperparams.pop("meta_test", None) or {}
@@ -158,6 +196,15 @@ class MetaExperimentManager(ExperimentManager):
             meta = parse_dict_string(meta, "meta_test")
         self.meta_test_kwargs.update(meta)
         return super()._preprocess_hyperparams(hyperparams)
+
+    def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
+        """rl_zoo3's set-up; a ValueError on the way (a value the env or the algorithm refuses) is a user error."""
+        try:
+            return super().setup_experiment()
+        except UsageError:
+            raise
+        except ValueError as error:
+            raise UsageError(str(error)) from error
 
     # -- evaluation ------------------------------------------------------------------------------------
     def create_callbacks(self) -> None:
@@ -167,6 +214,11 @@ class MetaExperimentManager(ExperimentManager):
         eval_freq, self.eval_freq = self.eval_freq, -1  # the zoo's EvalCallback is replaced below
         super().create_callbacks()
         self.eval_freq = eval_freq
+        # The cost of the run (plan, measured costs, ETA) and -P's bar, counting gradient steps: callback 0, which
+        # rl_zoo3's learn() closes when training stops.
+        self.callbacks = [cb for cb in self.callbacks if not isinstance(cb, ProgressBarCallback)]
+        slow_hint = faster_option(self.env_name.gym_id, self.algo, self.budget, program_name())
+        self.callbacks.insert(0, TrainingProgressCallback(self.show_progress, slow_hint, verbose=self.verbose))
         # --save-freq: resumable checkpoints (model with its RNG states + replay buffer, at an iteration start).
         self.callbacks = [
             ResumableCheckpointCallback(cb.save_freq, cb.save_path, cb.name_prefix, cb.verbose)
@@ -357,6 +409,8 @@ class MetaExperimentManager(ExperimentManager):
                 n_repeats=settings["n_repeats"],
                 deterministic=settings["deterministic"],
                 seed=self.seed,
+                progress_bar=self.verbose > 0 or self.show_progress,
+                description="Meta-test (Ctrl-C skips it)",
             )
         finally:
             env.close()
@@ -370,7 +424,8 @@ class MetaExperimentManager(ExperimentManager):
 
 def check_model_env(model_path: str, env_id: str) -> None:
     """
-    Raise a clear error if the run folder of ``model_path`` says the model was trained on another env.
+    Raise a clear error (:class:`~sb3_pearl.zoo.usage.UsageError`) if the run folder of ``model_path`` says the model
+    was trained on another env.
 
     :param model_path: path of the model zip (its folder holds ``<EnvId>/args.yml`` in the zoo layout)
     :param env_id: the env id it is about to be used with
@@ -379,12 +434,13 @@ def check_model_env(model_path: str, env_id: str) -> None:
         saved = load_run_yaml(args_path) or {}
         trained_env = saved.get("env")
         if trained_env is not None and trained_env != env_id:
-            raise ValueError(f"{model_path} was trained on {trained_env}, not on {env_id} (see {args_path})")
+            raise UsageError(f"{model_path} was trained on {trained_env}, not on {env_id} (see {args_path})")
 
 
 def check_model_spaces(model: BaseAlgorithm, env: Any, model_path: str, env_id: str) -> None:
     """
-    Raise a clear error if the model's observation / action spaces are not the env's.
+    Raise a clear error (:class:`~sb3_pearl.zoo.usage.UsageError`) if the model's observation / action spaces are not
+    the env's.
 
     :param model: the loaded model
     :param env: the env (gymnasium env or VecEnv)
@@ -399,7 +455,7 @@ def check_model_spaces(model: BaseAlgorithm, env: Any, model_path: str, env_id: 
         if same and hasattr(model_space, "n"):
             same = int(model_space.n) == int(env_space.n)  # type: ignore[attr-defined]
         if not same:
-            raise ValueError(f"{model_path} was saved for another env: its {kind} is {model_space}, {env_id} has {env_space}")
+            raise UsageError(f"{model_path} was saved for another env: its {kind} is {model_space}, {env_id} has {env_space}")
 
 
 def train(argv: Sequence[str] | None = None) -> None:
@@ -413,23 +469,66 @@ def train(argv: Sequence[str] | None = None) -> None:
     :param argv: command-line arguments (default: ``sys.argv[1:]``)
     """
     register_algos()
-    args = list(sys.argv[1:] if argv is None else argv)
+    with exit_on_usage_error():
+        args = _project_flags(list(sys.argv[1:] if argv is None else argv))
+        sys.argv = [sys.argv[0], *args]
+        rl_zoo3.train.ExperimentManager = MetaExperimentManager  # type: ignore[misc]
+        rl_zoo3.train.StoreDict = CheckedStoreDict  # type: ignore[misc]  # a bad -params value: one line, not a traceback
+        try:
+            rl_zoo3.train.train()
+        except SystemExit:
+            if {"-h", "--help"} & set(args):
+                print(PROJECT_FLAGS_HELP)
+            raise
+
+
+PROJECT_FLAGS_HELP = """
+sb3-pearl flags (docs/cli.md):
+  --budget PRESET       train with the env's entry of a budget preset instead of zoo_hyperparams/<algo>.yml:
+                        cpu (one run <= 45 min on one core), smoke (seconds) or paper
+                        (sb3_pearl/experiments/presets/; -n and -params still override it)
+  --resume CHECKPOINT   continue a --save-freq checkpoint (or a run's model) up to n_timesteps in all, with its
+                        replay buffer and RNG states"""
+
+
+def _project_flags(args: list[str]) -> list[str]:
+    """
+    Handle the project's own flags (``--resume``, ``--budget``) and check ``--env``; return rl_zoo3's arguments.
+
+    :param args: the command line
+    :return: the arguments for rl_zoo3's parser
+    """
     MetaExperimentManager.resume = False
+    MetaExperimentManager.budget = None
     if "--resume" in args:
         index = args.index("--resume")
         if index + 1 >= len(args) or not os.path.isfile(args[index + 1]) or not args[index + 1].endswith(".zip"):
-            raise SystemExit(
-                "train.py: --resume takes the checkpoint's model zip, e.g. --resume logs/pearl/Env_1/rl_model_5000_steps.zip"
+            raise UsageError(
+                "--resume takes the checkpoint's model zip, e.g. --resume logs/pearl/Env_1/rl_model_5000_steps.zip"
             )
         if "-i" in args or "--trained-agent" in args:
-            raise SystemExit(
-                "train.py: --resume and -i/--trained-agent exclude each other (--resume is -i that keeps the counters)"
-            )
+            raise UsageError("--resume and -i/--trained-agent exclude each other (--resume is -i that keeps the counters)")
         args[index] = "--trained-agent"
         MetaExperimentManager.resume = True
-    sys.argv = [sys.argv[0], *args]
-    rl_zoo3.train.ExperimentManager = MetaExperimentManager  # type: ignore[misc]
-    rl_zoo3.train.train()
+    peek = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    peek.add_argument("--env", default=None)
+    peek.add_argument("--algo", default=None)
+    peek.add_argument("--gym-packages", nargs="+", default=[])
+    peek.add_argument("--budget", default=None)
+    known, _ = peek.parse_known_args(args)
+    for module in known.gym_packages:
+        importlib.import_module(module)
+    if known.env is not None:
+        check_env_id(known.env)
+    if "--budget" in args:
+        index = args.index("--budget")
+        if known.budget is None or known.budget.startswith("-"):
+            raise UsageError("--budget takes a budget preset name: smoke, cpu or paper")
+        del args[index : index + 2]
+        if known.algo is not None and known.env is not None:
+            budget_hyperparams(known.budget, known.env, known.algo)  # an unknown preset or entry: the error now
+        MetaExperimentManager.budget = known.budget
+    return args
 
 
 __all__ = [

@@ -7,7 +7,6 @@ earlier ones (k = 1..``--n-adapt``), rendered, recorded as videos or only printe
 from __future__ import annotations
 
 import argparse
-import difflib
 import importlib
 import json
 import os
@@ -20,13 +19,15 @@ from gymnasium.envs.registration import load_env_creator
 from gymnasium.wrappers import HumanRendering, RecordVideo
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3 import ALGOS, create_test_env
-from rl_zoo3.utils import StoreDict, get_model_path
+from rl_zoo3.utils import get_model_path
 from stable_baselines3.common.utils import set_random_seed
 
 from sb3_pearl.common.meta_test import ROW_COLUMNS, MetaTestResult, get_test_tasks, meta_test
+from sb3_pearl.common.runtime import has_display
 from sb3_pearl.zoo.experiment_manager import check_model_env, check_model_spaces
 from sb3_pearl.zoo.registry import register_algos
 from sb3_pearl.zoo.safe_config import UnsafeConfigError, get_saved_hyperparams, load_run_yaml
+from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, check_env_id, exit_on_usage_error
 
 
 def enjoy_parser() -> argparse.ArgumentParser:
@@ -71,7 +72,11 @@ def enjoy_parser() -> argparse.ArgumentParser:
         "--gym-packages", type=str, nargs="+", default=[], help="Additional external Gym environment package modules to import"
     )
     parser.add_argument(
-        "--env-kwargs", type=str, nargs="+", action=StoreDict, help="Optional keyword argument to pass to the env constructor"
+        "--env-kwargs",
+        type=str,
+        nargs="+",
+        action=CheckedStoreDict,
+        help="Optional keyword argument to pass to the env constructor",
     )
     return parser
 
@@ -116,38 +121,44 @@ def enjoy(argv: Sequence[str] | None = None) -> MetaTestResult:
     :return: the meta-test of the rollouts
     """
     register_algos()
-    args = enjoy_parser().parse_args(argv)
+    with exit_on_usage_error():
+        return _enjoy(enjoy_parser().parse_args(argv))
+
+
+def _enjoy(args: argparse.Namespace) -> MetaTestResult:
+    """:func:`enjoy` after parsing; user errors raise :class:`~sb3_pearl.zoo.usage.UsageError`."""
     for module in args.gym_packages:
         importlib.import_module(module)
     env_name: EnvironmentName = args.env
     env_id = env_name.gym_id
-    if env_id not in gym.registry:
-        close = difflib.get_close_matches(env_id, list(gym.registry), n=1)
-        raise SystemExit(f"enjoy.py: {env_id} not found in gym registry" + (f", you maybe meant {close[0]}?" if close else ""))
+    check_env_id(env_id)
     try:
         _, model_path, log_path = get_model_path(
             args.exp_id, args.folder, args.algo, env_name, args.load_best, args.load_checkpoint, args.load_last_checkpoint
         )
     except (AssertionError, ValueError) as error:
-        raise SystemExit(f"enjoy.py: {error}") from None
+        raise UsageError(str(error)) from None
     if args.num_threads > 0:
         th.set_num_threads(args.num_threads)
     set_random_seed(args.seed)
     try:
-        check_model_env(model_path, env_id)
-    except ValueError as error:
-        raise SystemExit(f"enjoy.py: {error}") from None
+        check_model_env(model_path, env_id)  # a UsageError: the model was trained on another env
+    except UnsafeConfigError as error:  # its args.yml would run code
+        raise UsageError(str(error)) from None
     print(f"Loading {model_path}")
 
     try:  # the run folder's YAML, read without running code (sb3_pearl.zoo.safe_config)
         hyperparams, maybe_stats_path = get_saved_hyperparams(os.path.join(log_path, env_name), test_mode=True)
         env_kwargs = _saved_env_kwargs(log_path, env_name, hyperparams)
     except UnsafeConfigError as error:
-        raise SystemExit(f"enjoy.py: {error}") from None
+        raise UsageError(str(error)) from None
     shifted = bool(args.env_kwargs)
     if args.env_kwargs:
         env_kwargs.update(args.env_kwargs)
     render = not args.no_render
+    if render and args.video_folder is None and not has_display():
+        print("No display (DISPLAY is not set): rollouts are not rendered; --video-folder DIR records them as videos")
+        render = False
     if args.video_folder is not None:
         env_kwargs["render_mode"] = "rgb_array"
     elif render and "render_mode" not in env_kwargs:
@@ -168,10 +179,7 @@ def enjoy(argv: Sequence[str] | None = None) -> MetaTestResult:
         env = HumanRendering(env)
 
     model = ALGOS[args.algo].load(model_path, device=args.device)
-    try:
-        check_model_spaces(model, env, model_path, env_id)
-    except ValueError as error:
-        raise SystemExit(f"enjoy.py: {error}") from None
+    check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
     tasks = get_test_tasks(model, env, args.n_tasks, args.seed, sample=args.sample_tasks or shifted)
     source = "sampled from the env" if (args.sample_tasks or shifted or not getattr(model, "test_tasks", None)) else "saved"
     print(f"{len(tasks)} test tasks ({source}), trajectories k = 0 (prior) .. {args.n_adapt} (posterior)")
@@ -191,7 +199,12 @@ def enjoy(argv: Sequence[str] | None = None) -> MetaTestResult:
             deterministic=not args.stochastic,
             seed=args.seed,
             on_trajectory_start=name_video,
+            progress_bar=True,
+            description="Rollouts (Ctrl-C stops)",
         )
+    except KeyboardInterrupt:
+        print("Interrupted: no summary")
+        raise SystemExit(130) from None
     finally:
         env.close()
     result.config.update(algo=args.algo, env_id=env_id, model_path=model_path)

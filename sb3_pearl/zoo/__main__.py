@@ -1,0 +1,17 @@
+"""``python -m sb3_pearl.zoo``: the package behind the command line; prints how to run it."""
+
+import sys
+
+USAGE = """sb3_pearl.zoo is the library behind the command line (docs/cli.md). Run:
+
+  python -m sb3_pearl.train --algo pearlplus --env SafePointGoalMeta-v0      train (sb3-pearl-train; train.py in a checkout)
+  python -m sb3_pearl.enjoy --algo pearlplus --env SafePointGoalMeta-v0      watch a trained model adapt (sb3-pearl-enjoy)
+  python -m sb3_pearl.plots logs/pearlplus/SafePointGoalMeta-v0_1           figures of a run's meta-test
+  python -m sb3_pearl.demo                                                  PEARL and PEARL+ on the fast family
+
+Add -h to any of them for its flags."""
+
+if __name__ == "__main__":
+    asked = bool({"-h", "--help"} & set(sys.argv[1:]))
+    print(USAGE, file=sys.stdout if asked else sys.stderr)
+    sys.exit(0 if asked else 2)  # argparse's status for a missing command

@@ -1,0 +1,116 @@
+"""``train.py --budget PRESET``: a family's entry of a budget preset as the zoo's hyperparameters.
+
+The presets (``sb3_pearl/experiments/presets/*.yml``, read by
+:func:`~sb3_pearl.experiments.budgets.load_budget`) are the one source of the reproduction harness's budgets;
+``--budget cpu`` trains with the same entry (a run of <= 45 minutes on one core) instead of the paper-sized
+entry of ``zoo_hyperparams/<algo>.yml``. Env ids map to the presets' family names through
+:data:`sb3_pearl.experiments.families.FAMILIES`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sb3_pearl.experiments.budgets import PRESETS, load_budget, preset_entries
+from sb3_pearl.experiments.families import FAMILIES
+from sb3_pearl.experiments.spec import Family
+from sb3_pearl.zoo.usage import UsageError
+
+# Activation names of the presets -> the expression rl_zoo3 evaluates in a policy_kwargs string (torch.nn as nn).
+ACTIVATION_EXPRESSIONS = {"relu": "nn.ReLU", "tanh": "nn.Tanh", "elu": "nn.ELU", "leaky_relu": "nn.LeakyReLU"}
+
+
+def env_family(env_id: str) -> Family | None:
+    """
+    The family of the reproduction experiments that trains on ``env_id`` (None: none does).
+
+    :param env_id: a registered env id
+    :return: the family
+    """
+    return next((family for family in FAMILIES.values() if family.env_id == env_id), None)
+
+
+def families_with(preset: str, algo: str) -> list[str]:
+    """``"<EnvId> (<family>)"`` for every family with an entry for ``algo`` in ``preset``."""
+    entries = preset_entries(preset)
+    return [f"{f.env_id} ({f.budget_name})" for f in FAMILIES.values() if algo in entries.get(f.budget_name, [])]
+
+
+def policy_kwargs_string(policy_kwargs: dict[str, Any]) -> str:
+    """
+    A preset's ``policy_kwargs`` as the zoo's string form (``"dict(net_arch=[128, 128], activation_fn=nn.Tanh)"``):
+    rl_zoo3 evaluates it and the run folder's ``config.yml`` stays plain data.
+
+    :param policy_kwargs: as written in a preset (activation by name)
+    :return: the string
+    """
+    items = []
+    for key, value in policy_kwargs.items():
+        if key == "activation_fn":
+            items.append(f"{key}={ACTIVATION_EXPRESSIONS[value]}")
+        else:
+            items.append(f"{key}={value!r}")
+    return f"dict({', '.join(items)})"
+
+
+def budget_hyperparams(preset: str, env_id: str, algo: str) -> dict[str, Any]:
+    """
+    The zoo entry of ``env_id`` for ``algo`` taken from a budget preset.
+
+    :param preset: ``smoke``, ``cpu`` or ``paper``
+    :param env_id: the env id
+    :param algo: zoo algorithm name
+    :return: ``n_timesteps``, ``policy``, ``n_envs``, the constructor kwargs and ``meta_test``
+    :raises UsageError: unknown preset, or no entry for this env and algorithm
+    """
+    if preset not in PRESETS:
+        raise UsageError(f"--budget {preset}: unknown budget preset, choose among {', '.join(PRESETS)}")
+    family = env_family(env_id)
+    if family is None or algo not in preset_entries(preset).get(family.budget_name, []):
+        have = families_with(preset, algo)
+        raise UsageError(
+            f"--budget {preset}: the {preset} preset has no {algo} entry for {env_id}; it has one for "
+            f"{', '.join(have) or 'no env'} (sb3_pearl/experiments/presets/{preset}.yml). Without --budget, "
+            f"lower -n or the network sizes with -params"
+        )
+    budget = load_budget(preset, family.budget_name, algo)
+    kwargs = dict(budget["kwargs"])
+    if isinstance(kwargs.get("policy_kwargs"), dict):
+        kwargs["policy_kwargs"] = policy_kwargs_string(kwargs["policy_kwargs"])
+    return {
+        "n_timesteps": budget["n_timesteps"],
+        "policy": budget["policy"],
+        "n_envs": budget["n_envs"],
+        **kwargs,
+        "meta_test": dict(budget["meta_test"]),
+    }
+
+
+def faster_option(env_id: str, algo: str, budget: str | None, prog: str = "train.py") -> str:
+    """
+    What to run instead of a training run that takes more than a day on a CPU.
+
+    :param env_id: the env id
+    :param algo: zoo algorithm name
+    :param budget: the ``--budget`` of the run (None: the YAML entry)
+    :param prog: the command's name
+    :return: the advice
+    """
+    if budget == "cpu":
+        return "It already uses the cpu preset: lower -n, or train on a GPU (--device cuda)."
+    try:
+        entry = budget_hyperparams("cpu", env_id, algo)
+    except UsageError:
+        have = families_with("cpu", algo)
+        return (
+            f"No CPU-sized budget exists for {env_id} ({prog} --budget cpu has entries for {', '.join(have)}): "
+            "lower -n or the network sizes (-params policy_kwargs:...), or train on a GPU."
+        )
+    return (
+        f"Faster: {prog} --algo {algo} --env {env_id} --budget cpu trains with the reproduction harness's cpu preset "
+        f"({entry['n_timesteps']:,} env steps, policy_kwargs {entry.get('policy_kwargs', 'default')}; "
+        "one run <= 45 min on one core)."
+    )
+
+
+__all__ = ["budget_hyperparams", "env_family", "families_with", "faster_option", "policy_kwargs_string"]

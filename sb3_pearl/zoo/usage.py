@@ -1,0 +1,97 @@
+"""User errors of ``train.py`` / ``enjoy.py``: one line on stderr and exit status 2 (argparse's), no traceback.
+
+:class:`UsageError` is what the zoo raises for a mistake in the command line or the hyperparameters (an unknown env,
+a ``-params`` value that is not Python, a key the algorithm does not take, a value it refuses);
+:func:`exit_on_usage_error` turns it into the one-line message. :class:`CheckedStoreDict` is rl_zoo3's
+``StoreDict`` (``-params``, ``--env-kwargs``) with such an error instead of a traceback for a bad value.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import os
+import sys
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import gymnasium as gym
+from rl_zoo3.utils import StoreDict
+
+EXIT_USAGE = 2  # argparse's status for a bad command line
+
+
+class UsageError(ValueError):
+    """A mistake in the command line or the hyperparameters (the message says which and how to fix it)."""
+
+
+class UsageExit(SystemExit):
+    """``SystemExit`` with status 2 whose text is the error message (for callers that catch it, e.g. tests)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(EXIT_USAGE)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+def program_name() -> str:
+    """The command's name for messages: ``train.py``, ``enjoy.py``, ``sb3-pearl-train``, ..."""
+    return os.path.basename(sys.argv[0]) or "sb3_pearl"
+
+
+@contextmanager
+def exit_on_usage_error(prog: str | None = None) -> Iterator[None]:
+    """
+    Print a :class:`UsageError` raised inside as ``<prog>: error: <message>`` and exit with status 2 (:class:`UsageExit`).
+
+    :param prog: the command's name (default: :func:`program_name`)
+    """
+    try:
+        yield
+    except UsageError as error:
+        message = f"{prog or program_name()}: error: {error}"
+        print(message, file=sys.stderr, flush=True)
+        raise UsageExit(message) from None
+
+
+def check_env_id(env_id: str) -> None:
+    """
+    Raise a :class:`UsageError` naming the closest registered id if ``env_id`` is not registered.
+
+    :param env_id: the ``--env`` value
+    """
+    if env_id in gym.registry:
+        return
+    close = difflib.get_close_matches(env_id, list(gym.registry), n=1)
+    raise UsageError(f"--env {env_id}: not found in gym registry" + (f", did you mean {close[0]}?" if close else ""))
+
+
+class CheckedStoreDict(StoreDict):
+    """rl_zoo3's ``StoreDict`` (``key:value`` pairs, values evaluated as Python) with a :class:`UsageError` for a bad pair."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: str | Sequence[Any] | None,
+        option_string: str | None = None,
+    ) -> None:
+        example = 'e.g. learning_rate:0.001 policy_kwargs:"dict(net_arch=[64, 64])"'
+        for pair in values or []:
+            key, sep, value = str(pair).partition(":")
+            if not sep or not key:
+                raise UsageError(f"{option_string} {pair}: expected key:value, {example}")
+            try:  # what StoreDict does with it, in its module (rl_zoo3's convention: the values are Python expressions)
+                eval(value, vars(sys.modules[StoreDict.__module__]))
+            except Exception as error:
+                raise UsageError(
+                    f"{option_string} {pair}: the value {value!r} is not a Python expression ({type(error).__name__}: "
+                    f"{error}); strings need quotes, {example}"
+                ) from None
+        super().__call__(parser, namespace, values, option_string)
+
+
+__all__ = ["EXIT_USAGE", "CheckedStoreDict", "UsageError", "UsageExit", "check_env_id", "exit_on_usage_error", "program_name"]
