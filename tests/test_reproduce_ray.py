@@ -89,7 +89,10 @@ def test_ray_matches_local_resumes_and_ships_run_folders(
     thread.start()
     summary = run_experiment_ray(EXPERIMENT, "smoke", [0], tmp_path, jobs=1, **SELECTION)
     thread.join()
-    assert summary.done == KEYS[:1] and summary.interrupted == KEYS[1:] and not summary.failed
+    # the first run's folder is complete; whether the driver collected its trial before the stop signal
+    # depends on timing (a loaded machine), so it is reported as done or as interrupted
+    assert first.exists() and KEYS[1] in summary.interrupted and not summary.failed
+    assert set(summary.done) <= set(KEYS[:1]) and set(summary.done) | set(summary.interrupted) == set(KEYS)
     assert "run the same command again to resume" in capsys.readouterr().out
     mtime = first.stat().st_mtime_ns
 
