@@ -53,3 +53,18 @@ def test_two_workers_share_one_study_through_a_journal_file(tmp_path: Path) -> N
     finished = [int(re.search(r"Number of finished trials:\s+(\d+)", output).group(1)) for output in outputs]
     assert max(finished) == 2 * N_TRIALS and min(finished) >= N_TRIALS
     assert all((tmp_path / f"w{seed}" / "pearlplus").is_dir() for seed in (1, 2))
+
+    # a trial of the shared study, by index, trains with its parameters (trial 0 included: rl_zoo3 alone skips it)
+    replay = subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), "--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "trial0")]
+        + ["-n", "300", "--num-threads", "1", "--eval-freq", "-1", "--storage", str(journal), "--study-name", study_name]
+        + ["--trial-id", "0"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert replay.returncode == 0, replay.stdout[-3000:] + replay.stderr[-3000:]
+    assert "Loading from Optuna study" in replay.stdout
+    assert f"('prior_coef', {trials[0].params['prior_coef']})" in replay.stdout

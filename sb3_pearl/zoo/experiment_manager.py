@@ -54,7 +54,7 @@ from sb3_pearl.common.callbacks import (
 from sb3_pearl.common.meta_test import MetaTestResult, get_test_tasks, meta_test
 from sb3_pearl.common.progress import TrainingProgressCallback
 from sb3_pearl.zoo.budget import budget_hyperparams, faster_option
-from sb3_pearl.zoo.registry import constructor_kwargs, register_algos
+from sb3_pearl.zoo.registry import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.safe_config import load_run_yaml, parse_dict_string
 from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, check_env_id, exit_on_usage_error, program_name
 
@@ -150,6 +150,8 @@ class MetaExperimentManager(ExperimentManager):
         else:
             if not os.path.isfile(self.config) and self.config.endswith((".yml", ".yaml")):
                 raise UsageError(f"hyperparameter file {self.config} not found (expected zoo_hyperparams/{self.algo}.yml)")
+            if self.trial_id is not None:  # --trial-id 0 must load trial 0, not the YAML defaults
+                self.trial_id = OptunaTrialIndex(self.trial_id)
             try:
                 hyperparams, saved_hyperparams = super().read_hyperparameters()
             except ValueError as error:  # e.g. no entry for the env in the file

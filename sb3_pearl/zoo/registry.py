@@ -109,6 +109,13 @@ def sample_pearlplus_params(trial: optuna.Trial, n_actions: int, n_envs: int, ad
     return convert_pearl_params(trial.params)
 
 
+class OptunaTrialIndex(int):
+    """A trial index that is true even when 0: rl_zoo3 tests ``trial_id`` for truth and would skip ``--trial-id 0``."""
+
+    def __bool__(self) -> bool:
+        return True
+
+
 def register_algos() -> dict[str, type[BaseAlgorithm]]:
     """
     Register the project's algorithms (and samplers) with rl_zoo3; idempotent.
