@@ -118,6 +118,23 @@ def _held_out_tasks(env: gym.Env, n_tasks: int, eval_seed: int, train_tasks: lis
     return tasks
 
 
+def _protocol(
+    model: Any, env: gym.Env, tasks: list[Any], settings: dict[str, Any], eval_seed: int, trace_keys: tuple[str, ...] = ()
+) -> MetaTestResult:
+    """The meta-test of one run with its preset settings, seeded by the experiment's eval seed (common random numbers)."""
+    return meta_test(
+        model,
+        env,
+        tasks,
+        n_adapt=settings["n_adapt"],
+        n_repeats=settings["n_repeats"],
+        deterministic=settings["deterministic"],
+        seed=eval_seed,
+        trace_keys=trace_keys,
+        crn_seed=eval_seed,
+    )
+
+
 def run_one(
     experiment_name: str,
     family_name: str,
@@ -171,17 +188,7 @@ def run_one(
     tasks = _held_out_tasks(eval_env, settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
     log(f"[{key.label()}] meta-test {settings}", flush=True)
     start = time.time()
-    held_out = meta_test(
-        model,
-        eval_env,
-        tasks,
-        n_adapt=settings["n_adapt"],
-        n_repeats=settings["n_repeats"],
-        deterministic=settings["deterministic"],
-        seed=experiment.eval_seed,
-        trace_keys=(),
-        crn_seed=experiment.eval_seed,
-    )
+    held_out = _protocol(model, eval_env, tasks, settings, experiment.eval_seed)
     meta_test_s = time.time() - start
     timings = {"train": train_s, "meta_test": meta_test_s}
 
@@ -193,17 +200,7 @@ def run_one(
         shift_tasks = _held_out_tasks(shift_env, shift_settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
         log(f"[{key.label()}] shifted meta-test {shift_settings}", flush=True)
         start = time.time()
-        shifted = meta_test(
-            model,
-            shift_env,
-            shift_tasks,
-            n_adapt=shift_settings["n_adapt"],
-            n_repeats=shift_settings["n_repeats"],
-            deterministic=shift_settings["deterministic"],
-            seed=experiment.eval_seed,
-            trace_keys=(),
-            crn_seed=experiment.eval_seed,
-        )
+        shifted = _protocol(model, shift_env, shift_tasks, shift_settings, experiment.eval_seed)
         timings["shift"] = time.time() - start
         shift = _meta_test_record(shifted, timings["shift"], shift_kwargs)
         shift_env.close()
@@ -212,16 +209,8 @@ def run_one(
     if train_tasks:
         comp_settings = budget["competence_meta_test"]
         start = time.time()
-        on_train = meta_test(
-            model,
-            eval_env,
-            train_tasks[: comp_settings["n_tasks"]],
-            n_adapt=comp_settings["n_adapt"],
-            n_repeats=comp_settings["n_repeats"],
-            deterministic=comp_settings["deterministic"],
-            seed=experiment.eval_seed,
-            trace_keys=family.trace_keys(),
-            crn_seed=experiment.eval_seed,
+        on_train = _protocol(
+            model, eval_env, train_tasks[: comp_settings["n_tasks"]], comp_settings, experiment.eval_seed, family.trace_keys()
         )
         timings["competence"] = time.time() - start
         competence = {
