@@ -16,6 +16,21 @@ from sb3_pearl.envs.point_goal import PointGoalMetaEnv
 
 th.set_num_threads(1)
 
+# The zoo's fast SafePointGoal entry shrunk to seconds of training, as `-params` for train.py (tests/test_cli.py,
+# tests/test_newcomer.py).
+TINY_ZOO_PARAMS = [
+    "num_initial_steps:30",
+    "num_train_steps_per_itr:5",
+    "num_steps_prior:30",
+    "num_extra_rl_steps_posterior:30",
+    "n_train_tasks:4",
+    "n_test_tasks:3",
+    "meta_batch:2",
+    "batch_size:16",
+    "embedding_batch_size:8",
+    "meta_test:dict(n_adapt=2)",
+]
+
 TINY: dict[str, Any] = dict(
     n_train_tasks=4,
     n_test_tasks=2,

@@ -14,24 +14,12 @@ import yaml
 
 from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.zoo import constructor_kwargs, register_algos
+from tests.conftest import TINY_ZOO_PARAMS
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV_ID = "SafePointGoalMeta-v0"
-# Shrinks the fast YAML entry to a second of training; kl_weight / latent_dim check that -params reach the model.
-TINY_PARAMS = [
-    "num_initial_steps:30",
-    "num_train_steps_per_itr:5",
-    "num_steps_prior:30",
-    "num_extra_rl_steps_posterior:30",
-    "n_train_tasks:4",
-    "n_test_tasks:3",
-    "meta_batch:2",
-    "batch_size:16",
-    "embedding_batch_size:8",
-    "kl_weight:0.37",
-    "latent_dim:3",
-    "meta_test:dict(n_adapt=2)",
-]
+# kl_weight / latent_dim check that -params reach the model.
+TINY_PARAMS = [*TINY_ZOO_PARAMS, "kl_weight:0.37", "latent_dim:3"]
 
 
 def run(script: str, *args: str, check: bool = True, timeout: float = 120) -> subprocess.CompletedProcess[str]:

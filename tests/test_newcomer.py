@@ -24,22 +24,11 @@ from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.finetune import FineTune
 from sb3_pearl.zoo import enjoy, train
 from sb3_pearl.zoo.budget import budget_hyperparams, faster_option
+from tests.conftest import TINY_ZOO_PARAMS
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV_ID = "SafePointGoalMeta-v0"
-# The fast YAML entry shrunk to seconds (as tests/test_cli.py), so that the packaged zoo_hyperparams/ file is read.
-TINY_PARAMS = [
-    "num_initial_steps:30",
-    "num_train_steps_per_itr:5",
-    "num_steps_prior:30",
-    "num_extra_rl_steps_posterior:30",
-    "n_train_tasks:4",
-    "n_test_tasks:3",
-    "meta_batch:2",
-    "batch_size:16",
-    "embedding_batch_size:8",
-    "meta_test:dict(n_adapt=2)",
-]
+TINY_PARAMS = TINY_ZOO_PARAMS  # the packaged zoo_hyperparams/ file is read, its entry shrunk
 QUIET_ENV = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY", "MUJOCO_GL")}
 
 
