@@ -531,7 +531,10 @@ def _weights(model: Any) -> dict[str, th.Tensor]:
 
 # PEARL (tiny): iteration 0 = 4 tasks x 60 = 240 steps, then 2 x (30 + 10 + 30) = 140: 380 ends an iteration.
 # MAML learns whole meta-iterations: its first learn() ends at the iteration boundary past the budget.
-@pytest.mark.parametrize("algo, first, total", [("pearl", 380, 660), ("pearlplus", 380, 660), ("maml", 240, 600)])
+# Fine-Tune (SAC) collects across episodes: 130 splits an episode, which the saved env state continues.
+@pytest.mark.parametrize(
+    "algo, first, total", [("pearl", 380, 660), ("pearlplus", 380, 660), ("maml", 240, 600), ("finetune", 130, 200)]
+)
 def test_resume_after_save_load_is_bit_identical(
     tmp_path: Path, tiny_kwargs: dict[str, Any], algo: str, first: int, total: int
 ) -> None:
@@ -551,6 +554,47 @@ def test_resume_after_save_load_is_bit_identical(
     assert resumed.num_timesteps == unsplit.num_timesteps and resumed._n_updates == unsplit._n_updates
     expected = _weights(unsplit)
     assert all(th.equal(value, expected[key]) for key, value in _weights(resumed).items())
+
+
+# partial_iteration="carry": a budget ending inside an iteration keeps it open (with the envs' episodes), so a split
+# anywhere is exact. 100 falls inside iteration 0 (4 x 60 initial steps), 300 inside iteration 1 (240 + 140).
+@pytest.mark.parametrize("first", [100, 300])
+@pytest.mark.parametrize("reload", [False, True], ids=["same-process", "save-load"])
+def test_carry_splits_inside_an_iteration_bit_identically(
+    tmp_path: Path, tiny_kwargs: dict[str, Any], first: int, reload: bool
+) -> None:
+    def make() -> PEARL:
+        return tiny_pearl(tiny_kwargs, env=gym.make(NOISY_ENV), seed=0, partial_iteration="carry")  # type: ignore[arg-type]
+
+    unsplit = make().learn(660)
+    split = make().learn(first)
+    assert split.num_timesteps == first and split._open_iteration is not None
+    assert split._n_updates == (5 if first > 240 else 0)  # only finished iterations are trained
+    if reload:
+        split.save(tmp_path / "model")
+        split.save_replay_buffer(tmp_path / "buffer")
+        th.manual_seed(123), np.random.seed(123)
+        split = PEARLPlus.load(tmp_path / "model", env=gym.make(NOISY_ENV))
+        split.load_replay_buffer(tmp_path / "buffer.pkl")
+        assert split._open_iteration is not None and split._open_iteration.collected > 0
+    split.learn(660 - first, reset_num_timesteps=False)
+    assert split.num_timesteps == unsplit.num_timesteps == 660 and split._n_updates == unsplit._n_updates
+    expected = _weights(unsplit)
+    assert all(th.equal(value, expected[key]) for key, value in _weights(split).items())
+
+
+def test_default_trains_the_collected_share_and_a_reset_requeues_an_open_iteration(tiny_kwargs: dict[str, Any]) -> None:
+    share = tiny_pearl(tiny_kwargs, seed=0).learn(300)  # "train": iteration 1 is 60 of 140 steps in: ceil(5 * 60 / 140)
+    assert share._open_iteration is None and share._n_updates == 5 + 3
+    assert share.training_plan(440).gradient_steps == 5  # the next learn() starts a new, full iteration
+    carry = tiny_pearl(tiny_kwargs, seed=0, partial_iteration="carry").learn(300)
+    state = carry._open_iteration
+    assert state is not None and (state.collected, state.planned) == (60, 140)
+    assert carry.training_plan(380).gradient_steps == 5  # finishing the open iteration trains it in full
+    open_steps = int(state.remaining.sum()) + sum(seg.n_steps for visit in state.running for seg in visit)
+    carry.learn(80)  # reset_num_timesteps=True: the envs are reset, the open segments start again on fresh episodes
+    assert carry._open_iteration is None and carry._n_updates == 10 and open_steps > 0
+    assert carry.replay_buffer.rl.size.sum() == 380  # the iteration still collected exactly what it planned
 
 
 @pytest.mark.parametrize("algo", ["pearlplus", "finetune", "maml"])
@@ -585,4 +629,41 @@ def test_train_py_resume_of_a_checkpoint_is_bit_identical(tmp_path: Path) -> Non
     a = PEARLPlus.load(run_dir / f"{ENV_ID}.zip")
     b = PEARLPlus.load(tmp_path / "resumed" / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip")
     assert a.num_timesteps == b.num_timesteps == 420
+    assert all(th.equal(x, y) for x, y in zip(a.policy.state_dict().values(), b.policy.state_dict().values()))
+
+
+def test_train_py_resume_of_a_fine_tune_checkpoint_is_bit_identical(tmp_path: Path) -> None:
+    # SAC collects across episodes: the checkpoint at step 100 falls inside an episode (the envs' state is in the zip).
+    conf = tmp_path / "conf.yml"
+    entry = {
+        "n_timesteps": 260,
+        "policy": "MlpPolicy",
+        "n_envs": 1,
+        "learning_starts": 50,
+        "batch_size": 16,
+        "n_train_tasks": 4,
+        "n_test_tasks": 2,
+        "adapt_gradient_steps": 2,
+        "policy_kwargs": "dict(net_arch=[32, 32])",
+        "meta_test": "dict(n_adapt=0)",
+    }
+    conf.write_text(yaml.safe_dump({NOISY_ENV: entry}))
+
+    def run(folder: Path, *extra: str) -> str:
+        command = [sys.executable, str(ROOT / "train.py"), "--algo", "finetune", "--env", NOISY_ENV, "-f", str(folder)]
+        command += ["-conf", str(conf), "--seed", "1", "--num-threads", "1", "--eval-episodes", "1", *extra]
+        command += ["--gym-packages", "tests.faulty_envs"]
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+        proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+        return proc.stdout
+
+    run(tmp_path / "full", "--save-freq", "100")
+    run_dir = tmp_path / "full" / "finetune" / f"{NOISY_ENV}_1"
+    assert (run_dir / "rl_model_100_steps.zip").is_file() and (run_dir / "rl_model_replay_buffer_100_steps.pkl").is_file()
+    resumed = run(tmp_path / "resumed", "--resume", str(run_dir / "rl_model_100_steps.zip"))
+    assert "Resuming at 100 timesteps: 160 to go" in resumed
+    a = FineTune.load(run_dir / f"{NOISY_ENV}.zip")
+    b = FineTune.load(tmp_path / "resumed" / "finetune" / f"{NOISY_ENV}_1" / f"{NOISY_ENV}.zip")
+    assert a.num_timesteps == b.num_timesteps == 260 and a._n_updates == b._n_updates
     assert all(th.equal(x, y) for x, y in zip(a.policy.state_dict().values(), b.policy.state_dict().values()))

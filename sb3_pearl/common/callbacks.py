@@ -209,7 +209,9 @@ class ResumableCheckpointCallback(CheckpointCallback):
 
     PEARL / PEARL+ and MAML call ``on_rollout_start`` at the start of an iteration, before they draw its tasks,
     so ``train.py --resume`` of such a checkpoint continues bit for bit as the uninterrupted run
-    (docs/reliability.md). Fine-Tune's rollouts are single env steps: its checkpoints resume, but not exactly.
+    (docs/reliability.md). Fine-Tune's rollouts are single env steps, so its checkpoints fall inside episodes:
+    the zip holds the envs' mid-episode state (:mod:`sb3_pearl.common.env_state`, a DummyVecEnv's) and resumes
+    bit for bit too.
 
     :param save_freq: save after this many calls (``on_step``, one per VecEnv step)
     :param save_path: the folder

@@ -38,6 +38,7 @@ from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_pearl.common.atomic import atomic_write, sb3_file_path
+from sb3_pearl.common.env_state import capture_env_state, restore_env_state
 from sb3_pearl.common.seeding import capture_training_rng_state, restore_training_rng_state
 from sb3_pearl.envs.task_protocol import Task
 
@@ -201,11 +202,15 @@ class SaveLoadMixin(_AlgorithmBase):
         :param include: parameters to include although excluded by default
         """
         self._rng_state = capture_training_rng_state(self.env, self.action_space)  # saved with the data
-        if isinstance(path, (str, os.PathLike)):
-            with atomic_write(sb3_file_path(path, "zip")) as file:
-                super().save(cast(io.BufferedIOBase, file), exclude=exclude, include=include)
-        else:
-            super().save(path, exclude=exclude, include=include)
+        self._env_state = capture_env_state(self.env)  # the open episodes (DummyVecEnv only), for an exact resume
+        try:
+            if isinstance(path, (str, os.PathLike)):
+                with atomic_write(sb3_file_path(path, "zip")) as file:
+                    super().save(cast(io.BufferedIOBase, file), exclude=exclude, include=include)
+            else:
+                super().save(path, exclude=exclude, include=include)
+        finally:
+            del self._env_state
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_rng_to_restore"]
@@ -234,17 +239,25 @@ class SaveLoadMixin(_AlgorithmBase):
         custom_objects: dict[str, Any] | None = None,
         print_system_info: bool = False,
         force_reset: bool = True,
+        restore_env: bool = True,
         **kwargs: Any,
     ) -> SelfSaveLoad:
         """
         SB3's ``load``, after checking that the file is a complete zip of this class (clear errors otherwise).
+
+        A zip saved from a DummyVecEnv holds its envs' mid-episode state (:mod:`sb3_pearl.common.env_state`) and
+        every RNG state of the run: with ``restore_env`` and an ``env`` of the same structure, the envs continue
+        the saved episodes instead of being reset, and ``learn(..., reset_num_timesteps=False)`` continues the
+        run bit for bit (exact resume).
 
         :param path: the model zip
         :param env: the env to run the model on
         :param device: torch device
         :param custom_objects: objects replacing saved ones (SB3)
         :param print_system_info: print the system info of the save
-        :param force_reset: reset the env before the next ``learn``
+        :param force_reset: reset the env before the next ``learn`` (unless its saved state is restored)
+        :param restore_env: restore the envs' saved state into ``env`` when the zip holds one and ``env`` has the same
+            structure (same number of envs, same wrappers); otherwise (or False) the env is reset, as in SB3
         :param kwargs: attributes to set on the loaded model
         :return: the model
         """
@@ -256,9 +269,16 @@ class SaveLoadMixin(_AlgorithmBase):
             device=device,
             custom_objects=custom_objects,
             print_system_info=print_system_info,
-            force_reset=force_reset,
+            force_reset=force_reset and not (restore_env and env is not None),
             **kwargs,
         )
+        env_state = model.__dict__.pop("_env_state", None)
+        if (
+            restore_env
+            and env is not None
+            and not (env_state is not None and model._last_obs is not None and restore_env_state(model.env, env_state))
+        ):
+            model._last_obs = None  # nothing to continue: SB3's reset before the next learn()
         state = getattr(model, "_rng_state", None)
         if state is not None:  # the saved streams, not SB3's reseed; the envs' at the first learn()
             restore_training_rng_state(state, None, model.action_space)

@@ -17,6 +17,8 @@ from sb3_pearl.common.checks import (
     check_tau,
 )
 
+PARTIAL_ITERATION_MODES = ("train", "carry")
+
 
 def check_pearl_arguments(
     learning_rate: float | Schedule,
@@ -42,6 +44,7 @@ def check_pearl_arguments(
     num_train_steps_per_itr: int,
     use_bf16: bool | str,
     grad_conflict_log_freq: int,
+    partial_iteration: str,
     policy_kwargs: dict[str, Any] | None,
 ) -> None:
     """
@@ -82,5 +85,10 @@ def check_pearl_arguments(
         check_real("target_entropy", target_entropy, hint="or 'auto'")
     check_arch("encoder_arch", encoder_arch)
     check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
+    if partial_iteration not in PARTIAL_ITERATION_MODES:
+        raise ValueError(
+            f"partial_iteration must be one of {PARTIAL_ITERATION_MODES} (what learn() does with an iteration its budget "
+            f"ends in: train the collected share, or keep it open for the next learn()), got {partial_iteration!r}"
+        )
     if use_bf16 not in (True, False, "force"):
         raise ValueError(f"use_bf16 must be True, False or 'force' (bfloat16 even without native support), got {use_bf16!r}")

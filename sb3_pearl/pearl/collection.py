@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -79,44 +80,91 @@ def start_segment(model: PEARL, env: VecEnv, slot: int, segment: Segment, obs: n
     obs[slot] = env.env_method("reset", indices=[slot])[0][0]
 
 
-def collect_iteration(
-    model: PEARL, env: VecEnv, callback: BaseCallback, programs: list[list[Segment]]
-) -> tuple[int, int, bool]:
+@dataclass
+class OpenIteration:
     """
-    Run the programs on the envs, each env one task at a time.
+    An iteration being collected: the visits still queued, where each env stands in its own, and the counts.
 
-    The caller calls ``callback.on_rollout_start()`` before planning the iteration (:func:`plan_iteration` draws
+    ``learn`` keeps it between calls when ``partial_iteration="carry"`` and a budget ends inside the iteration
+    (and saves it with the model), so that the next ``learn`` finishes the same iteration.
+    """
+
+    queue: deque[deque[Segment]]  # visits not started yet
+    running: list[deque[Segment]]  # per env: the rest of its current visit
+    segments: list[Segment | None]  # per env: the segment it is running
+    remaining: np.ndarray  # (n_envs,) steps left in each env's current segment
+    z: np.ndarray  # (n_envs, latent_dim) each env's z for its current trajectory
+    collected: int = 0
+    planned: int = 0
+
+    @property
+    def finished(self) -> bool:
+        return self.collected >= self.planned
+
+
+def start_iteration(model: PEARL, programs: list[list[Segment]]) -> OpenIteration:
+    """The collection state of a new iteration made of ``programs`` (:func:`plan_iteration`)."""
+    n_envs = model.n_envs
+    return OpenIteration(
+        queue=deque(deque(program) for program in programs),
+        running=[deque() for _ in range(n_envs)],
+        segments=[None] * n_envs,
+        remaining=np.zeros(n_envs, dtype=np.int64),
+        z=np.zeros((n_envs, model.latent_dim), dtype=np.float32),
+        planned=sum(seg.n_steps for program in programs for seg in program),
+    )
+
+
+def requeue_open_segments(state: OpenIteration, n_envs: int) -> None:
+    """
+    Put each env's unfinished segment (its remaining steps) and the rest of its visit back at the head of the queue,
+    for ``n_envs`` envs: the envs were reset (or their number changed), so these segments start on a fresh episode.
+    The counts are kept: the iteration still collects what it planned.
+    """
+    visits: list[deque[Segment]] = []
+    for slot in range(len(state.remaining)):
+        visit = deque(state.running[slot])
+        current = state.segments[slot]
+        if state.remaining[slot] > 0 and current is not None:
+            visit.appendleft(current._replace(n_steps=int(state.remaining[slot]), clear_context=False))
+        if visit:
+            visits.append(visit)
+    state.queue.extendleft(reversed(visits))
+    state.running = [deque() for _ in range(n_envs)]
+    state.segments = [None] * n_envs
+    state.remaining = np.zeros(n_envs, dtype=np.int64)
+    state.z = np.zeros((n_envs, state.z.shape[1]), dtype=np.float32)
+
+
+def collect_iteration(model: PEARL, env: VecEnv, callback: BaseCallback, state: OpenIteration) -> bool:
+    """
+    Run the iteration's programs on the envs, each env one task at a time, until the iteration or the budget ends.
+
+    The caller calls ``callback.on_rollout_start()`` before planning a new iteration (:func:`plan_iteration` draws
     from the global RNG), so that a checkpoint saved there resumes exactly; this ends with ``on_rollout_end()``.
 
-    :return: steps collected, steps planned, whether training should go on
+    :param state: the iteration (updated in place: what is left of it, the steps collected)
+    :return: whether training should go on (False: a callback asked to stop)
     """
-    planned = sum(seg.n_steps for program in programs for seg in program)
-    queue = deque(deque(program) for program in programs)
     n_envs = env.num_envs
-    # Each env runs one program (the segments of one task visit, in order) at a time.
-    running: list[deque[Segment]] = [deque() for _ in range(n_envs)]
-    segments: list[Segment | None] = [None] * n_envs
-    remaining = np.zeros(n_envs, dtype=np.int64)
-    z = th.zeros(n_envs, model.latent_dim, device=model.device)
     obs = np.array(model._last_obs, dtype=np.float32)  # type: ignore[arg-type]
-    collected = 0
+    z = th.as_tensor(state.z, device=model.device)
+    continue_training = True
     while True:
         for slot in range(n_envs):
-            while remaining[slot] == 0 and (running[slot] or queue):
-                if not running[slot]:
-                    running[slot] = queue.popleft()
-                segment = running[slot].popleft()
+            while state.remaining[slot] == 0 and (state.running[slot] or state.queue):
+                if not state.running[slot]:
+                    state.running[slot] = state.queue.popleft()
+                segment = state.running[slot].popleft()
                 if segment.clear_context:
                     model.replay_buffer.context.clear(segment.task)
                 if segment.n_steps > 0:
                     start_segment(model, env, slot, segment, obs)
-                    segments[slot] = segment
-                    remaining[slot] = segment.n_steps
+                    state.segments[slot] = segment
+                    state.remaining[slot] = segment.n_steps
                     z[slot] = draw_z(model, segment)
-        active = np.flatnonzero(remaining > 0)
-        if len(active) == 0:
-            break
-        if model.num_timesteps >= model._total_timesteps:
+        active = np.flatnonzero(state.remaining > 0)
+        if len(active) == 0 or model.num_timesteps >= model._total_timesteps:
             break
 
         with th.no_grad():
@@ -128,7 +176,7 @@ def collect_iteration(
         check_env_step(env, new_obs, rewards, dones, infos, model.num_timesteps, type(model).__name__, active.tolist())
 
         for slot in active.tolist():
-            current = segments[slot]
+            current = state.segments[slot]
             assert current is not None
             next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]  # type: ignore[call-overload,index]
             terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
@@ -136,22 +184,23 @@ def collect_iteration(
             model.replay_buffer.rl.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
             if current.add_to_context:
                 model.replay_buffer.context.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
-            remaining[slot] -= 1
+            state.remaining[slot] -= 1
             if dones[slot]:
                 model._episode_num += 1
-                if remaining[slot] > 0:
+                if state.remaining[slot] > 0:
                     z[slot] = draw_z(model, current)  # z is drawn once per trajectory
-        collected += len(active)
+        state.collected += len(active)
         model.num_timesteps += len(active)
         obs = np.array(new_obs, dtype=np.float32)
         model._update_info_buffer([infos[i] for i in active], dones[active])
         callback.update_locals(locals())
         if not callback.on_step():
-            callback.on_rollout_end()
-            return collected, planned, False
+            continue_training = False
+            break
     model._last_obs = obs
+    state.z = z.cpu().numpy()
     callback.on_rollout_end()
-    return collected, planned, True
+    return continue_training
 
 
 def plan_training(model: PEARL, total_timesteps: int) -> TrainingPlan:
@@ -165,9 +214,14 @@ def plan_training(model: PEARL, total_timesteps: int) -> TrainingPlan:
     """
     remaining = max(total_timesteps - model.num_timesteps, 0)
     steps = model.num_train_steps_per_itr
-    without_data = int(np.count_nonzero(model.replay_buffer.rl.size == 0)) if model.num_initial_steps > 0 else 0
     chunks: list[tuple[int, int]] = []  # (collected, planned) per iteration
-    if without_data > 0 and remaining > 0:
+    open_iteration = model._open_iteration
+    if open_iteration is not None and remaining > 0:  # first, the iteration a previous learn() left open
+        rest = min(open_iteration.planned - open_iteration.collected, remaining)
+        chunks.append((open_iteration.collected + rest, open_iteration.planned))
+        remaining -= rest
+    without_data = int(np.count_nonzero(model.replay_buffer.rl.size == 0)) if model.num_initial_steps > 0 else 0
+    if open_iteration is None and without_data > 0 and remaining > 0:
         planned = model.num_initial_steps * without_data
         chunks.append((min(planned, remaining), planned))
         remaining -= chunks[-1][0]
@@ -175,9 +229,10 @@ def plan_training(model: PEARL, total_timesteps: int) -> TrainingPlan:
         model.num_steps_prior + model.num_steps_posterior + model.num_extra_rl_steps_posterior
     )
     full, rest = divmod(remaining, per_iteration) if per_iteration > 0 else (0, 0)
-    updates = [math.ceil(steps * collected / planned) for collected, planned in chunks]
-    updates += [steps] * full + ([math.ceil(steps * rest / per_iteration)] if rest > 0 else [])
-    initial = chunks[0][0] if chunks else 0
+    chunks += [(per_iteration, per_iteration)] * full + ([(rest, per_iteration)] if rest > 0 else [])
+    carry = model.partial_iteration == "carry"  # an unfinished last iteration is trained by a later learn()
+    updates = [0 if carry and done < planned else math.ceil(steps * done / planned) for done, planned in chunks]
+    initial = chunks[0][0] if chunks and open_iteration is None and without_data > 0 else 0
     return TrainingPlan(
         env_steps=max(total_timesteps - model.num_timesteps, 0),
         gradient_steps=sum(updates),

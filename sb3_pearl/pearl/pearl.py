@@ -16,6 +16,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
@@ -32,7 +33,14 @@ from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.pearl.adaptation import PosteriorAdaptationMixin
 from sb3_pearl.pearl.arguments import check_pearl_arguments
-from sb3_pearl.pearl.collection import collect_iteration, plan_iteration, plan_training
+from sb3_pearl.pearl.collection import (
+    OpenIteration,
+    collect_iteration,
+    plan_iteration,
+    plan_training,
+    requeue_open_segments,
+    start_iteration,
+)
 from sb3_pearl.pearl.losses import compute_losses
 from sb3_pearl.pearl.policies import PEARLPolicy
 
@@ -56,8 +64,8 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
 
     Data collection (``learn``) follows the reference schedule (:mod:`sb3_pearl.pearl.collection`):
     prior-z and posterior-z trajectories per visited task, then ``num_train_steps_per_itr`` gradient
-    steps. If the ``learn`` budget ends inside an iteration, the gradient steps are scaled by the
-    share of the iteration's planned steps that was collected.
+    steps. A ``learn`` budget ending inside an iteration trains the collected share of it, or, with
+    ``partial_iteration="carry"``, keeps it open for the next ``learn``.
 
     :param policy: ``"MlpPolicy"`` or a :class:`PEARLPolicy` subclass
     :param env: an env id or env following the task protocol (``sample_tasks``, ``set_task``,
@@ -99,6 +107,10 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     :param grad_conflict_log_freq: every this many gradient steps, log ``train/grad_conflict_ratio``
         (``||prior_coef * grad prior term|| / ||grad posterior term||`` on the actor parameters) and
         ``train/grad_conflict_cos`` (their cosine) from that step's losses (docs/diagnostics.md); 0: off
+    :param partial_iteration: when a ``learn`` budget ends inside an iteration: ``"train"`` (default, the protocol of
+        the committed results) trains the collected share, so that short runs train; ``"carry"`` keeps the iteration
+        open (saved with the model) for the next ``learn``, so a run split anywhere is bit-identical to the unsplit
+        one (docs/reliability.md). An iteration interrupted by a callback is kept open in both modes.
     :param policy_kwargs: extra policy arguments (``net_arch``, ``activation_fn``, ``n_critics``, ...)
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder
@@ -153,6 +165,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
         num_train_steps_per_itr: int = 2000,
         use_bf16: bool | str = False,
         grad_conflict_log_freq: int = 0,
+        partial_iteration: str = "train",
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -186,6 +199,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
             num_train_steps_per_itr=num_train_steps_per_itr,
             use_bf16=use_bf16,
             grad_conflict_log_freq=grad_conflict_log_freq,
+            partial_iteration=partial_iteration,
             policy_kwargs=policy_kwargs,
         )
         super().__init__(
@@ -228,6 +242,8 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
         self.num_train_steps_per_itr = num_train_steps_per_itr
         self.use_bf16 = use_bf16
         self.grad_conflict_log_freq = grad_conflict_log_freq
+        self.partial_iteration = partial_iteration
+        self._open_iteration: OpenIteration | None = None  # saved: a "carry" run resumes inside its iteration
         self.n_iterations = 0
         self.log_ent_coef: th.Tensor | None = None
         self.ent_coef_optimizer: th.optim.Adam | None = None
@@ -448,12 +464,19 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
         callback.on_training_start(locals(), globals())
         assert self.env is not None
         while self.num_timesteps < total_timesteps:
-            callback.on_rollout_start()  # before plan_iteration's draws: a checkpoint saved here resumes exactly
-            collected, planned, continue_training = collect_iteration(self, self.env, callback, plan_iteration(self))
+            state = self._open_iteration  # an iteration a previous learn() left open ("carry"), or a new one
+            if state is None:
+                callback.on_rollout_start()  # before plan_iteration's draws: a checkpoint saved here resumes exactly
+                state = start_iteration(self, plan_iteration(self))
+            continue_training = collect_iteration(self, self.env, callback, state)
+            if not state.finished and (self.partial_iteration == "carry" or not continue_training):
+                self._open_iteration = state  # finished by the next learn(); nothing trained on it yet
+                break
+            self._open_iteration = None
             if not continue_training:
                 break
-            if collected > 0:
-                gradient_steps = math.ceil(self.num_train_steps_per_itr * collected / max(planned, 1))
+            if state.collected > 0:  # "train": a budget ending inside the iteration trains the collected share
+                gradient_steps = math.ceil(self.num_train_steps_per_itr * state.collected / max(state.planned, 1))
                 self.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
             self.n_iterations += 1
             self.logger.record("time/iterations", self.n_iterations)
@@ -461,6 +484,18 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
                 self.dump_logs()
         callback.on_training_end()
         return self
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        if self._open_iteration is not None and (reset_num_timesteps or self._last_obs is None):
+            requeue_open_segments(self._open_iteration, self.n_envs)  # the envs are reset: their segments start anew
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def training_plan(self, total_timesteps: int) -> TrainingPlan:
         """What ``learn(total_timesteps)`` will still collect and train (:func:`~sb3_pearl.pearl.collection.plan_training`)."""
@@ -470,19 +505,9 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     # Save / load
     # ------------------------------------------------------------------------------------------
     def _excluded_save_params(self) -> list[str]:
-        return [
-            *super()._excluded_save_params(),
-            "encoder",
-            "actor",
-            "critic",
-            "critic_target",
-            "prior_critic",
-            "prior_critic_target",
-            "_adapt_context",
-            "_update_guard",
-            "_bf16_enabled",
-            "gradient_step_callback",
-        ]
+        networks = ["encoder", "actor", "critic", "critic_target", "prior_critic", "prior_critic_target"]
+        unsaved = ["_adapt_context", "_update_guard", "_bf16_enabled", "gradient_step_callback"]
+        return [*super()._excluded_save_params(), *networks, *unsaved]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "encoder.optimizer", "actor.optimizer", "critic.optimizer"]

@@ -1,0 +1,74 @@
+"""The envs' mid-episode state saved with a model (sb3_pearl.common.env_state): every family continues bit for bit."""
+
+from __future__ import annotations
+
+import threading
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+
+import sb3_pearl  # noqa: F401  (registers the families)
+from sb3_pearl.common.env_state import capture_env_state, restore_env_state
+
+
+def vec_env(env_id: str, n_envs: int = 2, seed: int = 0) -> DummyVecEnv:
+    env = DummyVecEnv([lambda: Monitor(gym.make(env_id)) for _ in range(n_envs)])
+    env.seed(seed)
+    env.reset()
+    return env
+
+
+def transitions(env: DummyVecEnv, actions: list[np.ndarray]) -> list[tuple[np.ndarray, ...]]:
+    return [tuple(np.copy(x) for x in env.step(action)[:3]) for action in actions]
+
+
+# The paper's families (MuJoCo Walker / Ant: MjData; highway-env: the road, its vehicles and the observation type that
+# points back to its env), the safe point robot, and the point maze, which composes gymnasium-robotics' maze env.
+@pytest.mark.parametrize(
+    "env_id",
+    ["Walker2dVelMeta-v0", "AntVelMeta-v0", "HighwayMergeMeta-v0", "SafePointGoalMeta-v0", "PointMazeGoalMeta-v0"],
+)
+def test_a_restored_env_continues_its_episodes_bit_for_bit(env_id: str) -> None:
+    env = vec_env(env_id)
+    rng = np.random.default_rng(0)
+    space = env.action_space
+    actions = [np.stack([space.sample() for _ in range(2)]) for _ in range(40)]
+    if isinstance(space, gym.spaces.Box):
+        actions = [rng.uniform(space.low, space.high, size=(2, *space.shape)).astype(space.dtype) for _ in range(40)]
+    transitions(env, actions[:15])  # mid-episode
+    state = capture_env_state(env)
+    assert state is not None
+    expected = transitions(env, actions[15:])  # runs past episode ends (auto-resets) for the short-episode families
+
+    other = vec_env(env_id, seed=123)  # another seed, another state
+    transitions(other, actions[:3])
+    assert restore_env_state(other, state)
+    for (obs, reward, done), (obs2, reward2, done2) in zip(expected, transitions(other, actions[15:])):
+        np.testing.assert_array_equal(obs, obs2)
+        np.testing.assert_array_equal(reward, reward2)
+        np.testing.assert_array_equal(done, done2)
+
+
+def test_an_env_of_another_structure_is_left_alone() -> None:
+    state = capture_env_state(vec_env("SafePointGoalMeta-v0"))
+    assert state is not None
+    assert not restore_env_state(vec_env("SafePointGoalMeta-v0", n_envs=3), state)  # another number of envs
+    bare = DummyVecEnv([lambda: gym.make("SafePointGoalMeta-v0")] * 2)  # no Monitor: another wrapper chain
+    assert not restore_env_state(bare, state)
+    normalized = VecNormalize(vec_env("SafePointGoalMeta-v0"))  # VecEnv wrappers are looked through
+    assert capture_env_state(normalized) is not None and restore_env_state(normalized, state)
+
+
+def test_envs_in_other_processes_and_unpicklable_state_are_not_captured() -> None:
+    subproc = SubprocVecEnv([lambda: gym.make("SafePointGoalMeta-v0")], start_method="fork")
+    try:
+        assert capture_env_state(subproc) is None
+    finally:
+        subproc.close()
+    env = vec_env("SafePointGoalMeta-v0")
+    env.envs[0].unwrapped.lock = threading.Lock()  # type: ignore[attr-defined]
+    with pytest.warns(UserWarning, match=r"state of env 0 cannot be saved: SafePointGoalMetaEnv\.lock does not pickle"):
+        assert capture_env_state(env) is None
