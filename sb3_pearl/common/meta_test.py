@@ -49,8 +49,8 @@ STEP_TRACE_KEYS_ATTR = "step_trace_keys"
 # ----------------------------------------------------------------------------------------------
 # Result container and writers
 # ----------------------------------------------------------------------------------------------
-def _json_value(value: Any) -> Any:
-    """Plain JSON value: nan/inf become None, numpy scalars Python numbers."""
+def json_value(value: Any) -> Any:
+    """A plain JSON value (for result files): nan / inf become None, numpy scalars Python numbers, tuples lists."""
     if isinstance(value, (np.floating, float)):
         value = float(value)
         return value if math.isfinite(value) else None
@@ -59,9 +59,9 @@ def _json_value(value: Any) -> Any:
     if isinstance(value, (np.bool_,)):
         return bool(value)
     if isinstance(value, dict):
-        return {str(k): _json_value(v) for k, v in value.items()}
+        return {str(k): json_value(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_value(v) for v in value]
+        return [json_value(v) for v in value]
     return value
 
 
@@ -143,7 +143,7 @@ class MetaTestResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict: config, summary, paper table, tasks, rows and traces."""
-        return _json_value(
+        return json_value(
             {
                 "config": self.config,
                 "summary": self.summary,

@@ -123,8 +123,6 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": PEARLPolicy}
     # Parameters every PEARL / PEARL+ zip holds (load() refuses a zip without them, e.g. a SAC one).
     saved_data_keys: ClassVar[tuple[str, ...]] = ("kl_weight", "meta_batch", "num_train_steps_per_itr", "train_tasks")
-    # Whether the class trains the prior term: PEARL.load refuses a PEARL+ zip (it would drop the prior critic).
-    has_prior_term: ClassVar[bool] = False
     # Gradient steps in a row with a non-finite loss or gradient (each skipped) that stop training (DivergenceError).
     max_consecutive_nonfinite_updates: ClassVar[int] = 10
     policy: PEARLPolicy
@@ -526,7 +524,8 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     def _check_saved_data(cls, data: dict[str, Any], path: str) -> None:
         super()._check_saved_data(data, path)
         prior_coef, mode = data.get("prior_coef", 0.0), data.get("prior_critic_mode", "none")
-        if not cls.has_prior_term and cls._saved_class_name(data) == "PEARLPlus":
+        # PEARL.load refuses a PEARL+ zip (it would drop the prior term); PEARLPlus.load takes a PEARL one (prior_coef 0).
+        if cls._saved_class_name(data) == "PEARLPlus" and "PEARLPlus" not in {base.__name__ for base in cls.__mro__}:
             raise ValueError(
                 f"{path} holds a PEARL+ model (prior_coef={prior_coef}, prior_critic={mode!r}): load it with PEARLPlus.load; "
                 f"{cls.__name__}.load would drop its prior term and prior critic"

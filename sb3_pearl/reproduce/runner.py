@@ -26,7 +26,7 @@ from stable_baselines3.common.logger import configure
 
 import sb3_pearl  # noqa: F401  (registers the task families)
 from sb3_pearl.common.diagnostics import compute_diagnostics
-from sb3_pearl.common.meta_test import MetaTestResult, _json_value, meta_test
+from sb3_pearl.common.meta_test import MetaTestResult, json_value, meta_test
 from sb3_pearl.experiments import get_experiment
 from sb3_pearl.experiments.budgets import algo_class, check_constructor_kwargs, load_budget, model_kwargs
 from sb3_pearl.experiments.spec import Experiment, Family, Variant
@@ -61,7 +61,7 @@ def run_kwargs(budget: dict[str, Any], variant: Variant, where: str) -> dict[str
 
 def spec_record(experiment: Experiment, family: Family, variant: Variant) -> dict[str, Any]:
     """What result.json stores of the spec."""
-    return _json_value(
+    return json_value(
         {
             "experiment": {"name": experiment.name, "title": experiment.title, "eval_seed": experiment.eval_seed},
             "family": {
@@ -233,7 +233,7 @@ def run_one(
     eval_env.close()
     timings["total"] = time.time() - started
 
-    result = _json_value(
+    result = json_value(
         {
             "experiment": experiment.name,
             "family": family.name,
