@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import pytest
 import torch as th
 from torch import nn
@@ -148,3 +149,84 @@ def test_bf16_hidden_layers_keep_float32_heads_and_master_weights(tiny_kwargs: d
         assert value.dtype == th.float32 and th.isfinite(value), name
     assert all(p.dtype == th.float32 and th.isfinite(p).all() for p in model.policy.parameters())
     assert _is_zero(losses.prior_critic_loss, model.encoder) and _is_zero(losses.actor_loss, model.encoder)
+
+
+# ----------------------------------------------------------------------------------------------
+# prior_data="prior": the prior terms use only the rows collected with z from the prior
+# ----------------------------------------------------------------------------------------------
+def test_masked_regression_and_mean_by_hand() -> None:
+    from sb3_pearl.common.soft_actor_critic import critic_regression_loss, masked_mean
+
+    q = th.tensor([[[1.0], [2.0], [4.0]], [[0.0], [0.0], [3.0]]])  # 2 critics, 3 rows
+    target = th.tensor([[0.0], [1.0], [1.0]])
+    rows = th.tensor([[1.0], [0.0], [1.0]])  # rows 0 and 2
+    # critic 1: (1 + 9) / 2 = 5; critic 2: (0 + 4) / 2 = 2; summed: 7 (unmasked: (1 + 1 + 9) / 3 + (0 + 1 + 4) / 3 = 16 / 3)
+    assert float(critic_regression_loss(q, target, weights=rows)) == pytest.approx(7.0)
+    assert float(critic_regression_loss(q, target)) == pytest.approx(16 / 3)
+    assert float(masked_mean(th.tensor([[2.0], [5.0], [4.0]]), rows)) == pytest.approx(3.0)
+    assert float(masked_mean(th.tensor([[2.0], [5.0]]), th.zeros(2, 1))) == 0.0  # no rows: 0, not nan
+
+
+def test_collection_marks_the_prior_z_transitions(tiny_kwargs: dict[str, Any]) -> None:
+    # iteration 0: 4 tasks x 60 prior steps; iteration 1: 2 visits x (30 prior + 10 posterior + 30 posterior RL-only)
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **tiny_kwargs).learn(380)
+    rl = model.replay_buffer.rl
+    flags = [rl.prior_z[t, : rl.size[t], 0] for t in range(rl.n_tasks)]
+    assert sum(int(f.sum()) for f in flags) == 240 + 2 * 30 and sum(len(f) for f in flags) == 380
+    assert set(np.unique(np.concatenate(flags)).tolist()) == {0.0, 1.0}
+
+
+def test_prior_data_prior_ignores_the_posterior_rows(tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, prior_data="prior", **tiny_kwargs).learn(380)
+    th.manual_seed(0)
+    replay, context, z0 = model._sample_meta_batch()
+    assert replay.prior_z is not None
+    flags = th.zeros_like(replay.prior_z)
+    flags[:, ::2] = 1.0  # every other row counts as collected with the prior
+    replay = replay._replace(prior_z=flags)
+
+    def losses(batch: Any) -> Any:
+        th.manual_seed(1)  # the same posterior z and policy noise for both batches
+        return model._compute_losses(batch, context, z0)
+
+    # Rows marked as posterior data changed beyond recognition: the prior terms do not move; the posterior ones do.
+    scrambled = replay._replace(
+        observations=th.where(flags.bool(), replay.observations, replay.observations + 3.0),
+        rewards=th.where(flags.bool(), replay.rewards, replay.rewards - 100.0),
+    )
+    a, b = losses(replay), losses(scrambled)
+    assert th.equal(a.prior_critic_loss, b.prior_critic_loss) and th.equal(a.prior_actor_loss, b.prior_actor_loss)
+    assert not th.equal(a.critic_loss, b.critic_loss) and not th.equal(a.actor_loss, b.actor_loss)
+    assert _reaches(a.prior_critic_loss, model.prior_critic) and _reaches(a.prior_actor_loss, model.actor)
+    # No prior rows in the batch: the prior terms are 0 and reach nothing.
+    none = losses(replay._replace(prior_z=th.zeros_like(flags)))
+    assert none.prior_critic_loss.item() == 0.0 and _is_zero(none.prior_critic_loss, model.prior_critic)
+    assert none.prior_actor_loss.item() == 0.0 and _is_zero(none.prior_actor_loss, model.actor)
+    # Every row a prior row: the paper's losses (prior_data="all") on the same batch.
+    everything = losses(replay._replace(prior_z=th.ones_like(flags)))
+    model.prior_data = "all"
+    paper = losses(replay)
+    assert th.allclose(everything.prior_critic_loss, paper.prior_critic_loss)
+    assert th.allclose(everything.prior_actor_loss, paper.prior_actor_loss)
+
+
+def test_prior_data_is_checked_and_saved(tmp_path: Any, tiny_kwargs: dict[str, Any]) -> None:
+    with pytest.raises(ValueError, match=r"unknown prior_data 'posterior'.*\('all', 'prior'\)"):
+        PEARLPlus("MlpPolicy", "PointGoalMeta-v0", prior_data="posterior", **tiny_kwargs)
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, prior_data="prior", **tiny_kwargs)
+    model.save(tmp_path / "model")
+    assert PEARLPlus.load(tmp_path / "model").prior_data == "prior"
+    assert (
+        PEARL("MlpPolicy", "PointGoalMeta-v0", **{k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"}).prior_data
+        == "all"
+    )
+
+
+def test_a_buffer_saved_before_the_prior_z_flag_loads_with_no_row_marked(tiny_kwargs: dict[str, Any]) -> None:
+    rl = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **tiny_kwargs).learn(240).replay_buffer.rl
+    state = rl.__getstate__()
+    del state["prior_z"]  # the pickle of an older version
+    old = type(rl).__new__(type(rl))
+    old.__setstate__(state)
+    assert old.prior_z.shape == rl.prior_z.shape and not old.prior_z.any() and rl.prior_z.any()
+    np.testing.assert_array_equal(old.observations, rl.observations)

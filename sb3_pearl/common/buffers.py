@@ -44,23 +44,35 @@ class TaskReplayBuffer:
         self.actions = np.zeros((n_tasks, capacity, self.action_dim), dtype=np.float32)
         self.rewards = np.zeros((n_tasks, capacity, 1), dtype=np.float32)
         self.dones = np.zeros((n_tasks, capacity, 1), dtype=np.float32)
+        self.prior_z = np.zeros((n_tasks, capacity, 1), dtype=np.float32)  # 1.0: collected with z from the prior
         self.pos = np.zeros(n_tasks, dtype=np.int64)
         self.size = np.zeros(n_tasks, dtype=np.int64)
 
     def add(
-        self, task: int, obs: np.ndarray, action: np.ndarray, reward: float, next_obs: np.ndarray, terminated: bool
+        self,
+        task: int,
+        obs: np.ndarray,
+        action: np.ndarray,
+        reward: float,
+        next_obs: np.ndarray,
+        terminated: bool,
+        prior_z: bool = False,
     ) -> None:
-        """Store one transition of ``task`` (``terminated`` is True only for a true terminal state)."""
+        """
+        Store one transition of ``task`` (``terminated`` is True only for a true terminal state; ``prior_z`` when the
+        policy acted with z drawn from the prior).
+        """
         p = self.pos[task]
         self.observations[task, p] = obs
         self.actions[task, p] = action
         self.rewards[task, p, 0] = reward
         self.next_observations[task, p] = next_obs
         self.dones[task, p, 0] = float(terminated)
+        self.prior_z[task, p, 0] = float(prior_z)
         self.pos[task] = (p + 1) % self.capacity
         self.size[task] = min(self.size[task] + 1, self.capacity)
 
-    _ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones")
+    _ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "prior_z")
 
     def __getstate__(self) -> dict:
         """Pickle only the rows in use (``save_replay_buffer``): the capacity is not written to disk."""
@@ -71,6 +83,8 @@ class TaskReplayBuffer:
         return state
 
     def __setstate__(self, state: dict) -> None:
+        if "prior_z" not in state:  # a buffer saved before the flag existed: its z sources are unknown (none marked)
+            state["prior_z"] = np.zeros_like(state["rewards"])
         for name in self._ARRAYS:
             stored = state[name]
             full = np.zeros((stored.shape[0], state["capacity"], *stored.shape[2:]), dtype=stored.dtype)
@@ -102,7 +116,7 @@ class TaskReplayBuffer:
         tasks = np.asarray(tasks, dtype=np.int64)
         rows = self.sample_indices(tasks, batch_size)
         t = tasks[:, None]  # (T, 1) broadcast against rows (T, B)
-        arrays = (self.observations, self.actions, self.rewards, self.next_observations, self.dones)
+        arrays = (self.observations, self.actions, self.rewards, self.next_observations, self.dones, self.prior_z)
         return MetaReplaySamples(*(th.as_tensor(a[t, rows], device=device) for a in arrays))
 
 

@@ -78,7 +78,7 @@ def entropy_log_prob(pe: PolicyEval) -> th.Tensor:
     return (pe.probs * pe.log_prob).sum(dim=-1, keepdim=True)
 
 
-def critic_regression_loss(q: th.Tensor, target: th.Tensor, coef: float = 1.0) -> th.Tensor:
+def critic_regression_loss(q: th.Tensor, target: th.Tensor, coef: float = 1.0, weights: th.Tensor | None = None) -> th.Tensor:
     """
     ``coef`` * sum over critics of the mean squared Bellman error.
 
@@ -88,7 +88,23 @@ def critic_regression_loss(q: th.Tensor, target: th.Tensor, coef: float = 1.0) -
     :param q: Q values (n_critics, N, 1)
     :param target: Bellman targets (N, 1)
     :param coef: factor on the sum
+    :param weights: (N, 1) 0/1 row weights: the mean runs over the rows with weight 1 only (None: every row)
     """
     if q.dim() != 3 or target.shape != q.shape[1:]:
         raise ValueError(f"expected q (n_critics, N, 1) and target (N, 1), got {tuple(q.shape)} and {tuple(target.shape)}")
-    return coef * (q - target.unsqueeze(0)).pow(2).mean(dim=(1, 2)).sum()
+    squared = (q - target.unsqueeze(0)).pow(2)  # (n_critics, N, 1)
+    if weights is None:
+        return coef * squared.mean(dim=(1, 2)).sum()
+    return coef * (masked_mean(squared, weights.unsqueeze(0), dims=(1, 2))).sum()
+
+
+def masked_mean(values: th.Tensor, weights: th.Tensor, dims: tuple[int, ...] = (0, 1)) -> th.Tensor:
+    """
+    Mean of ``values`` over the entries whose 0/1 ``weights`` are 1 (broadcast), along ``dims``; 0 when there are none.
+
+    :param values: e.g. (N, 1) per-row losses
+    :param weights: 0/1 weights broadcastable to ``values``
+    :param dims: dimensions to average over
+    """
+    weights = weights.expand_as(values)
+    return (values * weights).sum(dim=dims) / weights.sum(dim=dims).clamp(min=1.0)

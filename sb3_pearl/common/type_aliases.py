@@ -15,6 +15,7 @@ class MetaReplaySamples(NamedTuple):
     rewards: th.Tensor  # (T, B, 1)
     next_observations: th.Tensor  # (T, B, obs_dim)
     dones: th.Tensor  # (T, B, 1) 1.0 on termination only (a time-limit truncation stores 0.0)
+    prior_z: th.Tensor | None = None  # (T, B, 1) 1.0 where the transition was collected with z from the prior
 
 
 class PEARLLosses(NamedTuple):

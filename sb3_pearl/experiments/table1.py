@@ -30,6 +30,15 @@ VARIANTS = (
         "pearlplus",
         {"prior_coef": 0.1, "prior_critic": "separate", "prior_n_critics": 2},
     ),
+    # Not in the paper: PEARL+ whose prior terms use only the transitions collected with z from the prior
+    # (prior_data="prior", off by default): the prior critic is fitted on the states the z0 policy visits, not on
+    # task-confounded posterior data, the other hypothesis for the prior critic's bias (docs/diagnostics.md).
+    Variant(
+        "pearlplus-priordata",
+        "PEARL+ (alpha 0.1, prior-z data only)",
+        "pearlplus",
+        {"prior_coef": 0.1, "prior_critic": "separate", "prior_data": "prior"},
+    ),
 )
 
 # Percentages as printed ("~0.0%" is 0).

@@ -180,10 +180,10 @@ def collect_iteration(model: PEARL, env: VecEnv, callback: BaseCallback, state: 
             assert current is not None
             next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]  # type: ignore[call-overload,index]
             terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
-            stored_action = actions[slot].reshape(-1)
-            model.replay_buffer.rl.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
+            transition = (current.task, obs[slot], actions[slot].reshape(-1), rewards[slot], next_obs, terminated)
+            model.replay_buffer.rl.add(*transition, prior_z=current.z_source == "prior")
             if current.add_to_context:
-                model.replay_buffer.context.add(current.task, obs[slot], stored_action, rewards[slot], next_obs, terminated)
+                model.replay_buffer.context.add(*transition)
             state.remaining[slot] -= 1
             if dones[slot]:
                 model._episode_num += 1

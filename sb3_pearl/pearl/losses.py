@@ -5,7 +5,8 @@ touch disjoint parameter sets, so their sum (:meth:`PEARL._total_loss`) back-pro
 every optimizer its own gradient:
 
 - KL(q(z|c) || N(0, I)) and the critic loss reach the encoder (and the critic), nothing else does;
-- the prior critic's soft Bellman loss under z0 reaches the prior critic only;
+- the prior critic's soft Bellman loss under z0 reaches the prior critic only (with ``prior_data="prior"``, on the
+  rows collected with z from the prior only, as is the actor's prior term);
 - the actor terms L(b, z.detach()) and, for PEARL+, L(b, z0) read the critics through frozen
   parameters and reach the actor only.
 """
@@ -21,6 +22,7 @@ from sb3_pearl.common.soft_actor_critic import (
     critic_regression_loss,
     entropy_log_prob,
     evaluate_policy,
+    masked_mean,
     q_of_actions,
     q_of_policy,
     soft_value,
@@ -77,6 +79,13 @@ def compute_losses(model: PEARL, replay: MetaReplaySamples, context: th.Tensor, 
     x_critic = th.cat([obs, z_rows], dim=-1)
     critic_loss = critic_regression_loss(q_of_actions(model.critic, x_critic, actions, discrete), target)
 
+    # prior_data="prior": the prior terms fit and score only the rows collected with z from the prior.
+    prior_rows = None
+    if model.prior_data == "prior":
+        if replay.prior_z is None:
+            raise ValueError("prior_data='prior' needs replay batches with prior_z flags (TaskReplayBuffer.sample)")
+        prior_rows = replay.prior_z.reshape(rows, 1)  # (T*B, 1) 0/1
+
     # Prior critic Q~(s, a, z0): its own soft Bellman loss under z0.
     prior_critic_loss = th.zeros((), device=model.device)
     if model.prior_critic is not None:
@@ -84,14 +93,16 @@ def compute_losses(model: PEARL, replay: MetaReplaySamples, context: th.Tensor, 
         with th.no_grad():
             v0_next = soft_value(q_of_policy(model.prior_critic_target, x0_next, next_pe0), next_pe0, ent_coef)
             target0 = rewards + not_done * model.gamma * v0_next
-        prior_critic_loss = critic_regression_loss(q_of_actions(model.prior_critic, x_prior, actions, discrete), target0)
+        q0 = q_of_actions(model.prior_critic, x_prior, actions, discrete)
+        prior_critic_loss = critic_regression_loss(q0, target0, weights=prior_rows)
 
     # Actor: L_actor(b, z.detach()) and, for PEARL+, L_actor(b, z0); critics frozen.
     actor_loss = -soft_value(q_of_policy(model.critic.forward_frozen, x_post, pe_post), pe_post, ent_coef).mean()
     prior_actor_loss = th.zeros((), device=model.device)
     if use_prior:
         prior_q = model.prior_critic if model.prior_critic is not None else model.critic  # "shared": Q(s, a, z0)
-        prior_actor_loss = -soft_value(q_of_policy(prior_q.forward_frozen, x_prior, pe_prior), pe_prior, ent_coef).mean()
+        prior_values = soft_value(q_of_policy(prior_q.forward_frozen, x_prior, pe_prior), pe_prior, ent_coef)  # (T*B, 1)
+        prior_actor_loss = -(prior_values.mean() if prior_rows is None else masked_mean(prior_values, prior_rows))
 
     ent_coef_loss = th.zeros((), device=model.device)
     if model.log_ent_coef is not None:

@@ -130,6 +130,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before set-up).
     prior_coef: float = 0.0
     prior_critic_mode: str = "none"
+    prior_data: str = "all"
     # Called after every gradient step of train() while set (the progress callback sets it during learn()); never saved.
     gradient_step_callback: Callable[[], None] | None = None
 
@@ -221,7 +222,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
             supported_action_spaces=None,  # checked in _setup_model with a ValueError
         )
         # Saved with the model: PEARL keeps the class defaults (no prior term), PEARLPlus set its own.
-        self.prior_coef, self.prior_critic_mode = self.prior_coef, self.prior_critic_mode
+        self.prior_coef, self.prior_critic_mode, self.prior_data = self.prior_coef, self.prior_critic_mode, self.prior_data
         self.kl_weight = kl_weight
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy

@@ -14,6 +14,8 @@ from sb3_pearl.pearl.policies import PRIOR_CRITIC_MODES, PEARLPolicy
 
 SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
 
+PRIOR_DATA_MODES = ("all", "prior")
+
 
 class PEARLPlus(PEARL):
     """
@@ -35,6 +37,10 @@ class PEARLPlus(PEARL):
     :param prior_critic: ``"separate"`` (PEARL+) or ``"shared"`` (ablation PEARL+ (w/o))
     :param prior_critic_arch: hidden sizes of the prior critic (paper: [300, 300, 300]; ablation [100, 100, 100])
     :param prior_n_critics: Q networks in the prior critic (the paper: one new Q-network; 2 adds a twin minimum)
+    :param prior_data: the replay rows the prior terms use: ``"all"`` (the paper) or ``"prior"``, only the transitions
+        collected with z from the prior (not in the paper, off by default): the prior critic is then fitted, and the
+        actor's prior term scored, on the states the z0 policy itself visits, not on states that posterior policies
+        reached on their way to each task's own target (task-confounded data, docs/diagnostics.md)
     """
 
     def __init__(
@@ -50,6 +56,7 @@ class PEARLPlus(PEARL):
         prior_critic: str = "separate",
         prior_critic_arch: list[int] | None = None,
         prior_n_critics: int = 1,
+        prior_data: str = "all",
         latent_dim: int = 5,
         kl_weight: float = 0.1,
         use_next_obs_in_context: bool = False,
@@ -86,9 +93,15 @@ class PEARLPlus(PEARL):
         modes = tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none")
         if prior_critic not in modes:
             raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {modes} (PEARL has none)")
+        if prior_data not in PRIOR_DATA_MODES:
+            raise ValueError(
+                f"unknown prior_data {prior_data!r}: expected one of {PRIOR_DATA_MODES} (the replay rows the prior terms "
+                "use: all of them, as in the paper, or only those collected with z from the prior)"
+            )
         # Set before PEARL's constructor, which builds the prior critic only when the prior term uses it.
         self.prior_coef = prior_coef
         self.prior_critic_mode = prior_critic
+        self.prior_data = prior_data
         policy_kwargs = {**(policy_kwargs or {}), "prior_n_critics": prior_n_critics}
         if prior_critic_arch is not None:
             policy_kwargs["prior_critic_arch"] = prior_critic_arch
