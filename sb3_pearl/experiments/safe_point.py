@@ -2,7 +2,8 @@
 
 Variants: PEARL+ with ``prior_coef`` alpha in {0, 0.1, 1, 5}; alpha = 0 is ``PEARLPlus`` with
 ``prior_coef=0`` (the prior critic trained, the actor's prior term off), not the ``PEARL`` class, so
-that the sweep changes one number of one algorithm.
+that the sweep changes one number of one algorithm. Beside the sweep, not in the paper: alpha 0.1 and 1
+with ``prior_data="prior"`` (``alpha-<alpha>-priordata``).
 
 Families: ``safe-point`` (the registered env: crash penalty 2 per skipped step) and its variant
 ``safe-point-crash5`` (``crash_penalty=5``): with a heavier penalty a crash costs more return
@@ -20,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 
 from sb3_pearl.experiments.families import SAFE_POINT
-from sb3_pearl.experiments.spec import Claim, Experiment, Family
+from sb3_pearl.experiments.spec import Claim, Experiment, Family, Variant
 from sb3_pearl.experiments.table3 import alpha_variant
 
 ALPHAS = (0.0, 0.1, 1.0, 5.0)
@@ -34,7 +35,23 @@ SAFE_POINT_CRASH5: Family = dataclasses.replace(
     budget_family=SAFE_POINT.name,
 )
 
-VARIANTS = tuple(alpha_variant(alpha) for alpha in ALPHAS)
+# Not in the paper: the prior terms on prior-z transitions only (PEARLPlus(prior_data="prior"), off by default), the
+# test of the hypothesis that the prior critic is fitted on task-confounded data (docs/diagnostics.md).
+PRIOR_DATA_ALPHAS = (0.1, 1.0)
+
+
+def prior_data_variant(alpha: float) -> Variant:
+    """PEARL+ with ``prior_coef=alpha`` and ``prior_data="prior"`` (named ``alpha-<alpha>-priordata``)."""
+    base = alpha_variant(alpha)
+    return Variant(
+        f"{base.name}-priordata",
+        f"PEARL+ (alpha {alpha:g}, prior-z data only)",
+        base.algo,
+        {**base.overrides, "prior_data": "prior"},
+    )
+
+
+VARIANTS = (*(alpha_variant(alpha) for alpha in ALPHAS), *(prior_data_variant(alpha) for alpha in PRIOR_DATA_ALPHAS))
 
 CLAIMS = tuple(
     claim
@@ -44,6 +61,10 @@ CLAIMS = tuple(
         Claim(family, "alpha-0.1", "alpha-0", "violation", -1, "equal", source=SOURCE),
         Claim(family, "alpha-0.1", "alpha-0", "return", -1, "not_lower", source=SOURCE),
         Claim(family, "alpha-5", "alpha-0", "return", -1, "lower", source=SOURCE),
+        *(
+            Claim(family, f"alpha-{a:g}-priordata", "alpha-0", "violation", 0, "lower", source="not in the paper")
+            for a in PRIOR_DATA_ALPHAS
+        ),
     )
 )
 
