@@ -1,5 +1,8 @@
 """Adaptation curves of a reproduction group (matplotlib, Agg): return and violation rate against k, one line per variant.
 
+Solid lines: the meta-test on the family's test tasks; dashed, in the same colour: the meta-test on the shifted
+task distribution, where the runs have one.
+
 Returns: mean over seeds with the 95% t interval over seeds (no bar with one seed). Violation rates:
 the pooled rate with its 95% Wilson interval (defined with one seed too).
 """
@@ -42,22 +45,29 @@ def plot_group(
     fig, (ax_return, ax_violation) = plt.subplots(1, 2, figsize=(10, 4))
     present = [v for v in experiment.variants if v.name in group]
     for index, variant in enumerate(present):
-        ks = list(range(last_k(group[variant.name]) + 1))
-        stats = [cell_stats(group[variant.name], k) for k in ks]
-        points = [(k, s) for k, s in zip(ks, stats) if s is not None]
-        if not points:
-            continue
-        x = np.array([k for k, _ in points], dtype=np.float64) + 0.04 * (index - (len(present) - 1) / 2)  # lines apart
-        ret = np.array([s.ret.mean for _, s in points])
-        ret_bars = _error_bars(ret, np.array([s.ret.low for _, s in points]), np.array([s.ret.high for _, s in points]))
-        rate = np.array([s.pooled_rate for _, s in points])
-        rate_bars = _error_bars(
-            rate, np.array([s.pooled_low for _, s in points]), np.array([s.pooled_high for _, s in points])
-        )
-        seeds = max(s.n_seeds for _, s in points)
-        label = f"{variant.label} ({seeds} seed{'s' if seeds > 1 else ''})"
-        ax_return.errorbar(x, ret, yerr=ret_bars, marker="o", capsize=3, label=label)
-        ax_violation.errorbar(x, rate, yerr=rate_bars, marker="o", capsize=3, label=label)
+        colour = f"C{index}"
+        for section, style in (("meta_test", "-"), ("shift", "--")):
+            results = {seed: r for seed, r in group[variant.name].items() if r.get(section)}
+            if not results:
+                continue
+            ks = list(range(last_k(results, section) + 1))
+            points = [(k, s) for k, s in ((k, cell_stats(results, k, section)) for k in ks) if s is not None]
+            if not points:
+                continue
+            offset = 0.04 * (index - (len(present) - 1) / 2) + (0.02 if section == "shift" else 0.0)  # lines apart
+            x = np.array([k for k, _ in points], dtype=np.float64) + offset
+            ret = np.array([s.ret.mean for _, s in points])
+            ret_bars = _error_bars(ret, np.array([s.ret.low for _, s in points]), np.array([s.ret.high for _, s in points]))
+            rate = np.array([s.pooled_rate for _, s in points])
+            rate_bars = _error_bars(
+                rate, np.array([s.pooled_low for _, s in points]), np.array([s.pooled_high for _, s in points])
+            )
+            seeds = max(s.n_seeds for _, s in points)
+            where = "" if section == "meta_test" else ", shifted tasks"
+            label = f"{variant.label} ({seeds} seed{'s' if seeds > 1 else ''}{where})"
+            bars = dict(marker="o", capsize=3, color=colour, linestyle=style, label=label)
+            ax_return.errorbar(x, ret, yerr=ret_bars, **bars)  # type: ignore[arg-type]
+            ax_violation.errorbar(x, rate, yerr=rate_bars, **bars)  # type: ignore[arg-type]
     ax_return.set_xlabel("trajectory k (0: prior)")
     ax_return.set_ylabel("mean return (95% t over seeds)")
     ax_violation.set_xlabel("trajectory k (0: prior)")
