@@ -32,7 +32,7 @@ import zlib
 from typing import Any
 
 import gymnasium as gym
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 # Attributes with no dynamics that need not (and often cannot) be pickled: kept from the new env.
 SKIPPED_ATTRIBUTES = frozenset({"env", "results_writer", "mujoco_renderer", "viewer", "renderer", "_renderer"})
@@ -54,19 +54,17 @@ def _layers(env: gym.Env) -> list[Any]:
     return layers
 
 
-def _mujoco_types() -> tuple[type, type] | None:
-    try:
-        import mujoco
-    except ImportError:  # pragma: no cover - mujoco is a dependency; a family without it needs no special case
-        return None
-    return mujoco.MjModel, mujoco.MjData
+def _mujoco() -> Any:
+    """The mujoco module, imported on first use (``import sb3_pearl`` picks a headless GL backend before it loads)."""
+    import mujoco
+
+    return mujoco
 
 
 def dummy_vec_env(env: VecEnv | None) -> DummyVecEnv | None:
     """The DummyVecEnv under VecEnv wrappers (VecNormalize, VecMonitor, ...), or None for other VecEnvs."""
-    while isinstance(env, VecEnvWrapper):
-        env = env.venv
-    return env if isinstance(env, DummyVecEnv) else None
+    base = env.unwrapped if env is not None else None
+    return base if isinstance(base, DummyVecEnv) else None
 
 
 class _Pickler(pickle.Pickler):
@@ -92,10 +90,10 @@ class _Unpickler(pickle.Unpickler):
 def _live_objects(layers: list[Any]) -> dict[tuple[str, int], Any]:
     """Objects referenced by position, not copied: every layer, and each layer's MuJoCo model."""
     live: dict[tuple[str, int], Any] = {("layer", i): layer for i, layer in enumerate(layers)}
-    mujoco_types = _mujoco_types()
+    mj_model = _mujoco().MjModel
     for i, layer in enumerate(layers):
         for value in vars(layer).values():
-            if mujoco_types is not None and isinstance(value, mujoco_types[0]):
+            if isinstance(value, mj_model):
                 live["mjmodel", i] = value
     return live
 
@@ -163,14 +161,12 @@ def restore_env_state(env: VecEnv | None, state: dict[str, Any]) -> bool:
         if chain != [type(layer).__qualname__ for layer in layers]:
             return False
         decoded.append((layers, attributes))
-    mujoco_types = _mujoco_types()
+    mujoco = _mujoco()
     for layers, attributes in decoded:
         for layer, values in zip(layers, attributes):
             for key, value in values.items():
                 current = vars(layer).get(key)
-                if mujoco_types is not None and isinstance(value, mujoco_types[1]) and isinstance(current, mujoco_types[1]):
-                    import mujoco
-
+                if isinstance(value, mujoco.MjData) and isinstance(current, mujoco.MjData):
                     mujoco.mj_copyData(current, layer.model, value)  # in place: whoever holds the MjData keeps it
                 else:
                     vars(layer)[key] = value  # the attribute itself, past any property

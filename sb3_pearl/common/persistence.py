@@ -224,7 +224,8 @@ class SaveLoadMixin(_AlgorithmBase):
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
         result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
-        # First learn() after load(): continue the saved RNG streams (after the env reset above, which reseeds the envs).
+        # First learn() after load(): continue the saved RNG streams (after SB3's env reset, when the envs' saved state
+        # was not restored, reseeded them).
         state = self.__dict__.pop("_rng_to_restore", None)
         if state is not None:
             restore_training_rng_state(state, self.env, self.action_space)
@@ -273,12 +274,10 @@ class SaveLoadMixin(_AlgorithmBase):
             **kwargs,
         )
         env_state = model.__dict__.pop("_env_state", None)
-        if (
-            restore_env
-            and env is not None
-            and not (env_state is not None and model._last_obs is not None and restore_env_state(model.env, env_state))
-        ):
-            model._last_obs = None  # nothing to continue: SB3's reset before the next learn()
+        if restore_env and env is not None:
+            resumable = env_state is not None and model._last_obs is not None
+            if not (resumable and restore_env_state(model.env, env_state)):
+                model._last_obs = None  # nothing to continue: SB3's reset before the next learn()
         state = getattr(model, "_rng_state", None)
         if state is not None:  # the saved streams, not SB3's reseed; the envs' at the first learn()
             restore_training_rng_state(state, None, model.action_space)
