@@ -134,6 +134,48 @@ def test_report_builds_tables_and_figures(results: Path, tmp_path: Path) -> None
     assert "figures/reproduce_safe-point_safe-point_smoke.png" in text
 
 
+def _fake_result(rates: list[float], returns: list[float]) -> dict:
+    return {
+        "meta_test": {
+            "summary": [
+                {"k": k, "violation_rate": r, "return_mean": g, "n": 200} for k, (r, g) in enumerate(zip(rates, returns))
+            ]
+        }
+    }
+
+
+def test_seed_table_and_figure_show_each_seed(tmp_path: Path) -> None:
+    from sb3_pearl.reproduce.figures import plot_seeds
+    from sb3_pearl.reproduce.report import seed_table
+
+    experiment = get_experiment("safe-point")
+    group = {
+        "alpha-0": {
+            0: _fake_result([0.38, 0.1, 0.05], [-30.0, -20.0, -15.0]),
+            1: _fake_result([0.335, 0.2, 0.1], [-31, -21, -16]),
+        },
+        "alpha-0.1": {
+            0: _fake_result([0.42, 0.0, 0.0], [-33.0, -19.0, -18.5]),
+            1: _fake_result([0.17, 0.0, 0.0], [-29, -20, -17]),
+        },
+    }
+    lines = seed_table(experiment, group)
+    assert lines[0] == "| variant | k | seed 0 | seed 1 |"
+    # k = 0 and the last k (2) per variant, seed columns in order
+    assert "| PEARL+ (alpha 0) | 0 | 38.0% / -30.0 | 33.5% / -31.0 |" in lines
+    assert "| PEARL+ (alpha 0.1) | 2 | 0.0% / -18.5 | 0.0% / -17.0 |" in lines
+    assert len(lines) == 2 + 2 * 2
+    # a seed missing for one variant leaves its cell empty
+    del group["alpha-0.1"][1]
+    assert "| PEARL+ (alpha 0.1) | 0 | 42.0% / -33.0 |  |" in seed_table(experiment, group)
+    assert plot_seeds(experiment, group, tmp_path / "seeds.png")
+    assert (tmp_path / "seeds.png").stat().st_size > 1000
+    # one seed: nothing to compare across seeds
+    one = {v: {0: seeds[0]} for v, seeds in group.items()}
+    assert seed_table(experiment, one) == [] and not plot_seeds(experiment, one, tmp_path / "none.png")
+    assert not (tmp_path / "none.png").exists()
+
+
 def test_run_rejects_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from sb3_pearl.reproduce.cli import main
 

@@ -5,6 +5,10 @@ task distribution, where the runs have one.
 
 Returns: mean over seeds with the 95% t interval over seeds (no bar with one seed). Violation rates:
 the pooled rate with its 95% Wilson interval (defined with one seed too).
+
+A second figure (:func:`plot_seeds`) shows what those intervals summarise: each seed's violation rate at
+k = 0 and at the last k, one line per seed across the variants. The variants of a seed share the test
+tasks, env seeds and z0 draws, so a line is a paired comparison.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from sb3_pearl.experiments.spec import Experiment  # noqa: E402
-from sb3_pearl.reproduce.report import cell_stats, last_k  # noqa: E402
+from sb3_pearl.reproduce.report import cell_stats, last_k, seed_values  # noqa: E402
 
 
 def _error_bars(mean: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
@@ -82,3 +86,47 @@ def plot_group(
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_seeds(
+    experiment: Experiment,
+    group: Mapping[str, Mapping[int, dict[str, Any]]],
+    path: str | os.PathLike[str],
+    title: str = "",
+) -> bool:
+    """
+    Write the per-seed violation rates of one group: k = 0 (left) and the last k (right), one line per seed.
+
+    :param experiment: the experiment (variant order and labels)
+    :param group: variant -> seed -> result
+    :param path: PNG path
+    :param title: figure title
+    :return: False (and nothing written) with fewer than two seeds or two variants
+    """
+    present = [v for v in experiment.variants if v.name in group]
+    seeds = sorted({seed for results in group.values() for seed in results})
+    if len(seeds) < 2 or len(present) < 2:
+        return False
+    last = min(last_k(group[v.name]) for v in present)
+    fig, axes = plt.subplots(1, 2, figsize=(max(8.0, 1.6 * len(present) + 3), 4.2), sharey=True)
+    x = np.arange(len(present))
+    for ax, k in zip(axes, (0, last)):
+        per_variant = [seed_values(group[v.name], k, "violation") for v in present]
+        for index, seed in enumerate(seeds):
+            rates = np.array([values.get(seed, np.nan) for values in per_variant])  # (n_variants,), nan: not run
+            ax.plot(x, rates, marker="o", color=f"C{index}", label=f"seed {seed}", alpha=0.85)
+        means = np.array([np.mean(list(values.values())) if values else np.nan for values in per_variant])
+        ax.plot(x, means, color="black", linewidth=2.5, marker="_", markersize=18, linestyle="none", label="mean")
+        ax.set_title(f"k = {k}" + (" (prior policy)" if k == 0 else f" (after {k} trajectories)"))
+        ax.set_xticks(x)
+        ax.set_xticklabels([v.label for v in present], rotation=25, ha="right", fontsize=8)
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("violation rate")
+    axes[1].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True

@@ -10,7 +10,8 @@ Results are grouped by (experiment, budget preset, family); within a group, per 
 
 The generated part of the output file sits between :data:`BEGIN` and :data:`END`; the rest of the file
 (a hand-written preamble, older sections) is kept. Figures (adaptation curves: return and violation
-rate against k, one line per variant) go to ``figures/`` beside the output file.
+rate against k, one line per variant; per-seed violation rates at k = 0 and the last k, one line per seed
+across the variants) go to ``figures/`` beside the output file.
 """
 
 from __future__ import annotations
@@ -250,6 +251,33 @@ def claims_table(experiment: Experiment, claims: Sequence[ClaimResult]) -> list[
     return lines
 
 
+def seed_table(experiment: Experiment, group: Group) -> list[str]:
+    """
+    Per-seed violation rate and mean return at k = 0 and the last k: one row per (variant, k), one column per seed.
+
+    Every variant of a seed is meta-tested on the same tasks, env seeds and z0 draws, so a column is a paired
+    comparison; the spread between columns is the seed-to-seed variation the t intervals summarise.
+    """
+    seeds = sorted({seed for results in group.values() for seed in results})
+    if len(seeds) < 2:
+        return []
+    last = min(last_k(results) for results in group.values())
+    lines = [
+        "| variant | k | " + " | ".join(f"seed {seed}" for seed in seeds) + " |",
+        "|---|---|" + "---|" * len(seeds),
+    ]
+    for variant in [v.name for v in experiment.variants if v.name in group]:
+        for k in sorted({0, last}):
+            rates = seed_values(group[variant], k, "violation")
+            returns = seed_values(group[variant], k, "return")
+            cells = [
+                f"{_num(rates[seed], 1, 100)}% / {_num(returns[seed])}" if seed in rates and seed in returns else ""
+                for seed in seeds
+            ]
+            lines.append(f"| {_label(experiment, variant)} | {k} | {' | '.join(cells)} |")
+    return lines
+
+
 def competence_table(experiment: Experiment, group: Group) -> list[str]:
     """The competence criteria per variant: mean value over seeds and how many seeds pass."""
     lines = [
@@ -355,7 +383,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     :param figures_link: how the markdown links to ``figures_dir`` (relative to the output file)
     :return: the markdown
     """
-    from sb3_pearl.reproduce.figures import plot_group
+    from sb3_pearl.reproduce.figures import plot_group, plot_seeds
 
     groups = load_groups(results_dir)
     out = [
@@ -398,6 +426,14 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
                 *claims_table(experiment, claims),
                 "",
             ]
+        per_seed = seed_table(experiment, group)
+        if per_seed:
+            out += [
+                "Per seed (violation rate / mean return; a column is paired: the same test tasks, env seeds and z0 draws):",
+                "",
+                *per_seed,
+                "",
+            ]
         competence = competence_table(experiment, group)
         if competence:
             out += ["Competence on training tasks (docs/reproduce.md):", "", *competence, ""]
@@ -414,8 +450,12 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
             ]
         out += ["Wall times:", "", *timing_table(experiment, group), ""]
         name = f"reproduce_{experiment_name}_{family}_{budget}.png"
-        plot_group(experiment, group, Path(figures_dir) / name, title=f"{experiment.name} / {family} (budget {budget})")
+        title = f"{experiment.name} / {family} (budget {budget})"
+        plot_group(experiment, group, Path(figures_dir) / name, title=title)
         out += [f"![adaptation curves, {experiment_name} / {family}]({figures_link.rstrip('/')}/{name})", ""]
+        seeds_name = f"reproduce_{experiment_name}_{family}_{budget}_seeds.png"
+        if plot_seeds(experiment, group, Path(figures_dir) / seeds_name, title=title):
+            out += [f"![per-seed rates, {experiment_name} / {family}]({figures_link.rstrip('/')}/{seeds_name})", ""]
     return "\n".join(out)
 
 
