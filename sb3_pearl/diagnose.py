@@ -10,6 +10,10 @@ The model and its env id are found in:
 - a model zip: the env id comes from ``--env-id`` or from the zip's folder (either layout above).
 
 ``--env-id`` overrides the env id found. See docs/diagnostics.md for how to read the numbers.
+
+``--paths out.png`` (point families, whose observation is the 2-D position) also draws the prior policy's
+k = 0 paths on ``--paths-tasks`` held-out tasks spread over the goal angles, ``--paths-z0`` prior draws each
+(:func:`sb3_pearl.plots.plot_prior_paths`).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 from stable_baselines3.common.save_util import load_from_zip_file
 
 import sb3_pearl  # noqa: F401  (registers the envs)
@@ -34,6 +39,7 @@ from sb3_pearl.common.diagnostics import (
     compute_diagnostics,
     format_diagnostics,
 )
+from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.pearl import PEARL, PEARLPlus
 from sb3_pearl.zoo.safe_config import load_run_yaml
 
@@ -160,7 +166,47 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=None, help="cap on trajectory length")
     p.add_argument("--device", default="cpu", help="torch device")
     p.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    p.add_argument("--paths", default=None, metavar="PNG", help="also draw the k = 0 paths (point families) to this PNG")
+    p.add_argument("--paths-tasks", type=int, default=4, help="held-out tasks drawn by --paths (one panel each)")
+    p.add_argument("--paths-z0", type=int, default=10, help="prior draws per task drawn by --paths")
     return p
+
+
+def spread_tasks(tasks: list[Task], n: int) -> list[Task]:
+    """
+    ``n`` of ``tasks`` spread over their goal directions: evenly spaced in the order of the goal angle when
+    every task has a 2-D ``"goal"``, else evenly spaced in the given order.
+    """
+    if all("goal" in task and len(task["goal"]) == 2 for task in tasks):
+        tasks = sorted(tasks, key=lambda task: float(np.arctan2(task["goal"][1], task["goal"][0])))
+    n = min(n, len(tasks))
+    return [tasks[int(i)] for i in np.linspace(0, len(tasks) - 1, n).round()]
+
+
+def draw_prior_paths(model: PEARL, env: gym.Env, out: str, n_tasks: int, n_z0: int, seed: int, max_steps: int | None) -> None:
+    """
+    Draw the k = 0 paths of ``model`` on ``n_tasks`` held-out tasks spread over the goal angles (``--paths``).
+
+    :param model: a PEARL / PEARL+ model of a point family
+    :param env: its env
+    :param out: PNG path
+    :param n_tasks: tasks (panels)
+    :param n_z0: prior draws per task, drawn with ``np.random.default_rng(seed)``
+    :param seed: seed of the draws and resets
+    :param max_steps: trajectory cap
+    """
+    from sb3_pearl.common.diagnostics.paths import prior_paths
+    from sb3_pearl.plots import plot_prior_paths
+
+    if min(n_tasks, n_z0) < 1:
+        raise ValueError("--paths-tasks and --paths-z0 must be >= 1")
+    tasks = spread_tasks(list(model.test_tasks or model.train_tasks), n_tasks)
+    z0 = np.random.default_rng(seed).standard_normal((n_z0, model.latent_dim))
+    paths = prior_paths(model, env, tasks, z0, seed, max_steps)
+    radius = getattr(env.unwrapped, "hazard_radius", None)
+    rate = np.mean([r.violated for rollouts in paths for r in rollouts])
+    label = f"{type(model).__name__} (prior_coef {model.prior_coef:g})"
+    plot_prior_paths(paths, tasks, out, hazard_radius=radius, title=f"{label}: k = 0 paths, {rate:.0%} in a hazard")
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -178,6 +224,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         model = load_model(model_path, env, args.device)
     except RunFolderError as error:
         p.error(str(error))
+    if args.paths:
+        from sb3_pearl.common.diagnostics.paths import check_position_observation
+
+        try:
+            check_position_observation(model)  # before the diagnostics' minute of rollouts
+        except ValueError as error:
+            p.error(f"--paths: {error}")
     result = compute_diagnostics(
         model,
         env,
@@ -189,6 +242,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         max_steps=args.max_steps,
     )
     result["run"] = {"model": str(model_path), "env_id": env_id, "env_kwargs": env_kwargs}
+    if args.paths:
+        try:
+            draw_prior_paths(model, env, args.paths, args.paths_tasks, args.paths_z0, args.seed, args.max_steps)
+        except ValueError as error:
+            p.error(str(error))
     if args.json:
         print(json.dumps(result, indent=1, default=str))
     else:

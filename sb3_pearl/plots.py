@@ -27,7 +27,9 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from sb3_pearl.common.atomic import atomic_path  # noqa: E402
+from sb3_pearl.common.diagnostics.rollouts import FixedZRollout  # noqa: E402
 from sb3_pearl.common.meta_test import PAPER_KS, MetaTestResult  # noqa: E402
+from sb3_pearl.envs.task_protocol import Task  # noqa: E402
 
 KINDS = ("adaptation", "violations", "b_min", "speed")
 # The merge family's per-trajectory minimum braking at the merge [m/s^2] (a trajectory info key of its rows).
@@ -150,6 +152,51 @@ def plot_violation_bars(
     ax.legend(fontsize="small")
     ax.set_title(title or "violation rate before (0) and after adaptation")
     _save(fig, path)
+
+
+def plot_prior_paths(
+    paths: Sequence[Sequence[FixedZRollout]],
+    tasks: Sequence[Task],
+    path: str | os.PathLike[str],
+    hazard_radius: float | None = None,
+    title: str = "",
+) -> None:
+    """
+    The prior policy's k = 0 paths on point-robot tasks: one panel per task, one line per prior draw.
+
+    Red lines entered a hazard (``cost > 0``), grey ones did not; the task's goal is a star and its hazard
+    (``task["hazard"]``, drawn when ``hazard_radius`` is given) a red disc. The start is the origin.
+
+    :param paths: ``paths[j][i]``: task j, draw i (:func:`sb3_pearl.common.diagnostics.paths.prior_paths`)
+    :param tasks: the tasks, in the order of ``paths``
+    :param path: PNG path
+    :param hazard_radius: the family's hazard radius (None: no hazard drawn)
+    :param title: figure title
+    """
+    if len(paths) != len(tasks) or not paths:
+        raise ValueError(f"need one list of rollouts per task, got {len(paths)} for {len(tasks)} tasks")
+    n = len(tasks)
+    columns = min(n, 4)
+    rows = (n + columns - 1) // columns
+    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.2 * rows), squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    for ax, task, rollouts in zip(axes.flat, tasks, paths):
+        if hazard_radius is not None and "hazard" in task:
+            ax.add_patch(plt.Circle(tuple(task["hazard"]), hazard_radius, color="tab:red", alpha=0.2, linewidth=0))
+        for rollout in rollouts:
+            xy = rollout.observations[:, :2]  # (T + 1, 2) positions
+            colour, alpha = ("tab:red", 0.9) if rollout.violated else ("0.35", 0.6)
+            ax.plot(xy[:, 0], xy[:, 1], color=colour, alpha=alpha, linewidth=1)
+            ax.plot(xy[-1, 0], xy[-1, 1], marker=".", color=colour, alpha=alpha)
+        if "goal" in task:
+            ax.plot(*task["goal"][:2], marker="*", markersize=14, color="tab:green", markeredgecolor="black")
+        ax.plot(0.0, 0.0, marker="s", color="black", markersize=4)
+        violated = sum(r.violated for r in rollouts)
+        ax.set_title(f"{violated}/{len(rollouts)} in the hazard", fontsize=9)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+    _save(fig, path, title)
 
 
 def has_row_values(runs: Mapping[str, MetaTestResult], key: str) -> bool:

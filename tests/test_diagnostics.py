@@ -313,3 +313,65 @@ def test_common_random_numbers() -> None:
     plain_a, plain_seeds = _prior_draws(a, crn_seed=None)
     assert plain_seeds == [None] * 8
     assert not all(th.equal(plain_a[key], draws_a[key]) for key in draws_a)
+
+
+# ----------------------------------------------------------------------------------------------
+# The prior policy's paths (point families)
+# ----------------------------------------------------------------------------------------------
+def test_prior_paths_are_the_rollouts_the_violations_count(trained: PEARLPlus) -> None:
+    from sb3_pearl.common.diagnostics.paths import prior_paths
+    from sb3_pearl.common.diagnostics.violations import compute_violations
+
+    env = gym.make(ENV_ID)
+    tasks = list(trained.test_tasks)[:2]
+    z0 = np.random.default_rng(1).standard_normal((4, trained.latent_dim))
+    paths = prior_paths(trained, env, tasks, z0, seed=5)
+    assert [len(rollouts) for rollouts in paths] == [4, 4]
+    for rollouts in paths:
+        for rollout in rollouts:
+            np.testing.assert_allclose(rollout.observations[0], [0.0, 0.0])  # every task starts at the origin
+            assert rollout.violated == (rollout.cost > 0) and rollout.observations.shape == (rollout.length + 1, 2)
+    counted = compute_violations(trained, env, tasks, z0, np.zeros((1, trained.latent_dim)), seed=5, max_steps=None)
+    assert counted["violation_rate"] == pytest.approx(np.mean([r.violated for rollouts in paths for r in rollouts]))
+    assert counted["return_mean"] == pytest.approx(np.mean([r.episode_return for rollouts in paths for r in rollouts]))
+    with pytest.raises(ValueError, match=r"z0 must have shape \(n_z0, "):
+        prior_paths(trained, env, tasks, z0[:, :2], seed=5)
+
+
+def test_prior_paths_need_a_position_observation() -> None:
+    from sb3_pearl.common.diagnostics.paths import check_position_observation
+
+    model = PEARLPlus("MlpPolicy", "Walker2dVelMeta-v0", seed=0, **_kwargs())  # 17-D observation
+    with pytest.raises(ValueError, match=r"2-D position observation .* got shape \(17,\)"):
+        check_position_observation(model)
+    check_position_observation(PEARLPlus("MlpPolicy", make_discrete_env(), seed=0, **_kwargs()))  # (2,): accepted
+
+
+def test_spread_tasks_and_the_paths_figure(trained: PEARLPlus, tmp_path: Path) -> None:
+    from sb3_pearl.common.diagnostics.paths import prior_paths
+    from sb3_pearl.diagnose import spread_tasks
+    from sb3_pearl.plots import plot_prior_paths
+
+    angles = [2.0, 0.5, 1.5, 1.0, 2.5]
+    tasks = [{"goal": [float(np.cos(a)), float(np.sin(a))]} for a in angles]
+    picked = spread_tasks(tasks, 3)
+    assert [round(float(np.arctan2(t["goal"][1], t["goal"][0])), 6) for t in picked] == [0.5, 1.5, 2.5]
+    assert spread_tasks([{"x": 1}, {"x": 2}, {"x": 3}], 2) == [{"x": 1}, {"x": 3}]  # no goals: given order
+    assert len(spread_tasks(tasks, 10)) == 5
+
+    env = gym.make(ENV_ID)
+    chosen = list(trained.test_tasks)[:2]
+    paths = prior_paths(trained, env, chosen, np.zeros((2, trained.latent_dim)), seed=0)
+    plot_prior_paths(paths, chosen, tmp_path / "paths.png", hazard_radius=0.25, title="t")
+    assert (tmp_path / "paths.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match="one list of rollouts per task"):
+        plot_prior_paths(paths, chosen[:1], tmp_path / "bad.png")
+
+
+def test_cli_draws_the_paths(trained: PEARLPlus, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    trained.save(tmp_path / "model.zip")
+    out = tmp_path / "paths.png"
+    diagnose_main(
+        [str(tmp_path / "model.zip"), "--env-id", ENV_ID, *ARGS, "--paths", str(out), "--paths-tasks", "2", "--paths-z0", "3"]
+    )
+    assert out.stat().st_size > 1000 and "Violations at k = 0" in capsys.readouterr().out
