@@ -6,8 +6,8 @@ scripted candidates bound what that optimum is worth on this family:
 
 - ``still``: stay at the start (the origin). Every goal lies on the unit circle, so the return is
   exactly -horizon (-30), and the hazards (0.35-0.85 from the origin) are never entered;
-- ``wait-at-0.3``: go to (0, 0.3), the point of the hazard-free inner disc closest to the goal arc
-  on average, and wait there.
+- ``wait-at-0.3``: go to (0, 0.3), inside the hazard-free inner disc (radius 0.35) with a margin, towards
+  the middle of the goal arc, and wait there.
 
 Prints, per crash penalty, the mean return and the violation rate over ``--n-tasks`` tasks drawn by the
 env's own ``sample_tasks`` (seed ``--seed``), to compare with the k = 0 rows of docs/results.md:

@@ -176,6 +176,10 @@ def spread_tasks(tasks: list[Task], n: int) -> list[Task]:
     """
     ``n`` of ``tasks`` spread over their goal directions: evenly spaced in the order of the goal angle when
     every task has a 2-D ``"goal"``, else evenly spaced in the given order.
+
+    :param tasks: the candidate tasks
+    :param n: how many to pick (all of them if there are fewer)
+    :return: the picked tasks
     """
     if all("goal" in task and len(task["goal"]) == 2 for task in tasks):
         tasks = sorted(tasks, key=lambda task: float(np.arctan2(task["goal"][1], task["goal"][0])))
@@ -227,6 +231,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if args.paths:
         from sb3_pearl.common.diagnostics.paths import check_position_observation
 
+        if min(args.paths_tasks, args.paths_z0) < 1:
+            p.error("--paths-tasks and --paths-z0 must be >= 1")
         try:
             check_position_observation(model)  # before the diagnostics' minute of rollouts
         except ValueError as error:
@@ -242,16 +248,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         max_steps=args.max_steps,
     )
     result["run"] = {"model": str(model_path), "env_id": env_id, "env_kwargs": env_kwargs}
-    if args.paths:
-        try:
-            draw_prior_paths(model, env, args.paths, args.paths_tasks, args.paths_z0, args.seed, args.max_steps)
-        except ValueError as error:
-            p.error(str(error))
     if args.json:
         print(json.dumps(result, indent=1, default=str))
     else:
         print(f"{model_path} on {env_id}" + (f" {env_kwargs}" if env_kwargs else ""))
         print(format_diagnostics(result))
+    if args.paths:  # after the printout, so that a failure here loses nothing
+        draw_prior_paths(model, env, args.paths, args.paths_tasks, args.paths_z0, args.seed, args.max_steps)
     return result
 
 

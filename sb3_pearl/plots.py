@@ -18,6 +18,7 @@ import argparse
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -27,9 +28,11 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from sb3_pearl.common.atomic import atomic_path  # noqa: E402
-from sb3_pearl.common.diagnostics.rollouts import FixedZRollout  # noqa: E402
 from sb3_pearl.common.meta_test import PAPER_KS, MetaTestResult  # noqa: E402
-from sb3_pearl.envs.task_protocol import Task  # noqa: E402
+
+if TYPE_CHECKING:
+    from sb3_pearl.common.diagnostics.rollouts import FixedZRollout
+    from sb3_pearl.envs.task_protocol import Task
 
 KINDS = ("adaptation", "violations", "b_min", "speed")
 # The merge family's per-trajectory minimum braking at the merge [m/s^2] (a trajectory info key of its rows).

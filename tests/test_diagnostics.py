@@ -318,10 +318,23 @@ def test_common_random_numbers() -> None:
 # ----------------------------------------------------------------------------------------------
 # The prior policy's paths (point families)
 # ----------------------------------------------------------------------------------------------
-def test_prior_paths_are_the_rollouts_the_violations_count(trained: PEARLPlus) -> None:
+def test_prior_paths_are_the_rollouts_the_violations_count(trained: PEARLPlus, monkeypatch: pytest.MonkeyPatch) -> None:
+    from sb3_pearl.common.diagnostics import paths as paths_module
+    from sb3_pearl.common.diagnostics import violations as violations_module
     from sb3_pearl.common.diagnostics.paths import prior_paths
     from sb3_pearl.common.diagnostics.violations import compute_violations
 
+    calls: dict[str, list[tuple[Any, ...]]] = {"paths": [], "violations": []}
+
+    def recorder(name: str) -> Any:
+        def record(model: Any, env: Any, task: Any, z: Any, deterministic: bool, seed: Any, max_steps: Any) -> Any:
+            calls[name].append((json.dumps(task), np.asarray(z).tolist(), deterministic, seed))
+            return rollout_with_z(model, env, task, z, deterministic, seed, max_steps)
+
+        return record
+
+    monkeypatch.setattr(paths_module, "rollout_with_z", recorder("paths"))
+    monkeypatch.setattr(violations_module, "rollout_with_z", recorder("violations"))
     env = gym.make(ENV_ID)
     tasks = list(trained.test_tasks)[:2]
     z0 = np.random.default_rng(1).standard_normal((4, trained.latent_dim))
@@ -332,6 +345,13 @@ def test_prior_paths_are_the_rollouts_the_violations_count(trained: PEARLPlus) -
             np.testing.assert_allclose(rollout.observations[0], [0.0, 0.0])  # every task starts at the origin
             assert rollout.violated == (rollout.cost > 0) and rollout.observations.shape == (rollout.length + 1, 2)
     counted = compute_violations(trained, env, tasks, z0, np.zeros((1, trained.latent_dim)), seed=5, max_steps=None)
+    # the same (task, z0, deterministic, seed) for every rollout; compute_violations adds one z = 0 rollout per task
+    assert sorted(calls["paths"]) == sorted(calls["violations"][: len(calls["paths"])])
+    assert len(calls["paths"]) == 8 and len({c[3] for c in calls["paths"]}) == 8  # distinct seeds per (draw, task)
+    for j, rollouts in enumerate(paths):  # paths[j][i] is task j, draw i
+        for i, rollout in enumerate(rollouts):
+            again = rollout_with_z(trained, env, tasks[j], z0[i], True, None)
+            np.testing.assert_allclose(rollout.observations, again.observations)
     assert counted["violation_rate"] == pytest.approx(np.mean([r.violated for rollouts in paths for r in rollouts]))
     assert counted["return_mean"] == pytest.approx(np.mean([r.episode_return for rollouts in paths for r in rollouts]))
     with pytest.raises(ValueError, match=r"z0 must have shape \(n_z0, "):
@@ -375,3 +395,6 @@ def test_cli_draws_the_paths(trained: PEARLPlus, tmp_path: Path, capsys: pytest.
         [str(tmp_path / "model.zip"), "--env-id", ENV_ID, *ARGS, "--paths", str(out), "--paths-tasks", "2", "--paths-z0", "3"]
     )
     assert out.stat().st_size > 1000 and "Violations at k = 0" in capsys.readouterr().out
+    with pytest.raises(SystemExit):  # refused before the diagnostics run
+        diagnose_main([str(tmp_path / "model.zip"), "--env-id", ENV_ID, "--paths", str(out), "--paths-z0", "0"])
+    assert "--paths-tasks and --paths-z0 must be >= 1" in capsys.readouterr().err

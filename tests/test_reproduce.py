@@ -134,7 +134,7 @@ def test_report_builds_tables_and_figures(results: Path, tmp_path: Path) -> None
     assert "figures/reproduce_safe-point_safe-point_smoke.png" in text
 
 
-def _fake_result(rates: list[float], returns: list[float]) -> dict:
+def _fake_result(rates: list[float], returns: list[float]) -> dict[str, Any]:
     return {
         "meta_test": {
             "summary": [

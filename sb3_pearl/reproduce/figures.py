@@ -107,10 +107,11 @@ def plot_seeds(
     seeds = sorted({seed for results in group.values() for seed in results})
     if len(seeds) < 2 or len(present) < 2:
         return False
-    last = min(last_k(group[v.name]) for v in present)
-    fig, axes = plt.subplots(1, 2, figsize=(max(8.0, 1.6 * len(present) + 3), 4.2), sharey=True)
+    ks = sorted({0, min(last_k(group[v.name]) for v in present)})  # k = 0 and the last k (once if the same)
+    width = max(4.5 * len(ks), 0.8 * len(ks) * len(present) + 3)
+    fig, axes = plt.subplots(1, len(ks), figsize=(width, 4.2), sharey=True, squeeze=False)
     x = np.arange(len(present))
-    for ax, k in zip(axes, (0, last)):
+    for ax, k in zip(axes[0], ks):
         per_variant = [seed_values(group[v.name], k, "violation") for v in present]
         for index, seed in enumerate(seeds):
             rates = np.array([values.get(seed, np.nan) for values in per_variant])  # (n_variants,), nan: not run
@@ -122,8 +123,8 @@ def plot_seeds(
         ax.set_xticklabels([v.label for v in present], rotation=25, ha="right", fontsize=8)
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
-    axes[0].set_ylabel("violation rate")
-    axes[1].legend(fontsize=8)
+    axes[0, 0].set_ylabel("violation rate")
+    axes[0, -1].legend(fontsize=8)
     if title:
         fig.suptitle(title)
     fig.tight_layout()

@@ -5,9 +5,10 @@ For families whose observation is the 2-D position (``PointGoalMeta-v0``, ``Safe
 whether the prior policy heads for *some* goal (PEARL's behaviour: z0 acts as a task) or keeps clear of
 the region where any task's hazard may lie (what PEARL+'s prior term should teach).
 
-The rollouts use the env seeds of :func:`~sb3_pearl.common.diagnostics.violations.compute_violations`: given
-the same tasks and z0 draws they are the trajectories it counts. ``python -m sb3_pearl.diagnose RUN --paths
-out.png`` draws them (:func:`sb3_pearl.plots.plot_prior_paths`).
+The rollouts derive their env seeds as :func:`~sb3_pearl.common.diagnostics.violations.compute_violations` does
+(``derived_seed(seed, _VIOLATION, draw, task)``): given the same task list and z0 draws, in the same order, they
+are the trajectories it counts. (The point families reset to the origin, so the seeds do not change them.)
+``python -m sb3_pearl.diagnose RUN --paths out.png`` draws them (:func:`sb3_pearl.plots.plot_prior_paths`).
 """
 
 from __future__ import annotations
@@ -27,7 +28,11 @@ if TYPE_CHECKING:
 
 
 def check_position_observation(model: PEARL) -> None:
-    """Raise a ValueError unless the model observes a 2-D position (the point families)."""
+    """
+    Raise a ValueError unless the model observes a 2-D position (the point families).
+
+    :param model: a PEARL / PEARL+ model
+    """
     shape = model.observation_space.shape
     if shape is None or len(shape) != 1 or shape[0] != 2:
         raise ValueError(
