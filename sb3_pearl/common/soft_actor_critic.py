@@ -64,6 +64,25 @@ def q_of_actions(critic_fn: CriticFn, x: th.Tensor, actions: th.Tensor, discrete
     return critic_fn(th.cat([x, actions], dim=-1))
 
 
+def conservative_gap(critic_fn: CriticFn, x: th.Tensor, pe: PolicyEval, q_data: th.Tensor) -> th.Tensor:
+    """
+    CQL's gap per critic and row (Kumar et al. 2020): the critic at the policy's actions minus at the stored ones.
+
+    Box: ``Q(s, a~pi) - Q(s, a_data)`` with the sampled action detached (CQL with the policy as the proposal);
+    Discrete: ``logsumexp_a Q(s, a) - Q(s, a_data)`` (CQL(H), exact over the actions). Minimising it pushes the
+    critic down on actions the data do not cover and up on those they do; gradients reach the critic only.
+
+    :param critic_fn: the critic (not frozen)
+    :param x: critic inputs without the action (N, in_dim)
+    :param pe: the policy evaluated on the same rows (its actions are detached here)
+    :param q_data: the critic at the stored actions, (n_critics, N, 1) (:func:`q_of_actions`)
+    :return: (n_critics, N, 1)
+    """
+    if pe.actions is None:
+        return th.logsumexp(critic_fn(x), dim=-1, keepdim=True) - q_data
+    return critic_fn(th.cat([x, pe.actions.detach()], dim=-1)) - q_data
+
+
 def soft_value(q: th.Tensor, pe: PolicyEval, ent_coef: th.Tensor) -> th.Tensor:
     """Soft state value (N, 1) from the policy's Q values (:func:`q_of_policy`)."""
     if pe.probs is None:

@@ -115,3 +115,19 @@ class SafePointGoalMetaEnv(PointGoalMetaEnv):
         centre = self.hazard_center
         mask = (world_x - centre[0]) ** 2 + (world_y - centre[1]) ** 2 < self.hazard_radius**2
         img[mask] = (220, 60, 60)
+
+
+# Task-independent scripted policies (observation -> action), the bar a prior policy can reach without task data
+# (prior-optimality gap, docs/pearl.md): every goal lies on the unit circle and every hazard 0.35-0.85 from the origin.
+WAIT_POINT = np.array([0.0, 0.3])  # inside the hazard-free inner disc (radius 0.35), towards the middle of the goal arc
+
+
+def _still(obs: np.ndarray) -> np.ndarray:
+    return np.zeros(2, dtype=np.float32)
+
+
+def _wait_at_point(obs: np.ndarray) -> np.ndarray:
+    return np.clip(WAIT_POINT - np.asarray(obs)[:2], -0.1, 0.1).astype(np.float32)  # the env's largest step per axis
+
+
+SCRIPTED_PRIORS = {"still": _still, "wait-at-0.3": _wait_at_point}

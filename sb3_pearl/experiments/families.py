@@ -16,7 +16,7 @@ training value so that only the tasks change, not the reward.
 
 from __future__ import annotations
 
-from sb3_pearl.experiments.spec import Criterion, Family
+from sb3_pearl.experiments.spec import Criterion, Family, PriorBar
 
 MPH = 0.44704  # m/s per mph (sb3_pearl.envs.highway_merge.MPH)
 
@@ -42,6 +42,11 @@ SAFE_POINT = Family(
         ),
     ),
     return_margin=2.0,
+    prior_bar=PriorBar(
+        "scripted",
+        "wait-at-0.3",
+        "scripted: walk to (0, 0.3), inside the hazard-free inner disc, and wait (benchmarks/safe_point_scripted_prior.py)",
+    ),
 )
 
 WALKER2D_VEL = Family(
@@ -62,6 +67,7 @@ WALKER2D_VEL = Family(
         _NO_FALLS,
     ),
     return_margin=10.0,
+    prior_bar=PriorBar("variant", "finetune", "Fine-Tune's k = 0 policy: SAC trained on the task mixture, same budget"),
 )
 
 ANT3D_VEL = Family(

@@ -73,6 +73,27 @@ class Criterion:
 
 
 @dataclass(frozen=True)
+class PriorBar:
+    """
+    The task-independent bar of a family's prior-optimality gap: what a policy with no task data scores at k = 0.
+
+    :param kind: ``"scripted"``, a scripted policy the family's env module declares (``SCRIPTED_PRIORS``), rolled
+        out by every run on the same tasks and env seeds as the model's k = 0 trajectories; or ``"variant"``, the
+        k = 0 policy of another variant of the same experiment and seed (Fine-Tune: SAC on the task mixture)
+    :param name: the scripted policy's or the variant's name
+    :param description: what the bar is, for the report
+    """
+
+    kind: Literal["scripted", "variant"]
+    name: str
+    description: str
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("scripted", "variant"):
+            raise ValueError(f"prior bar kind must be 'scripted' or 'variant', got {self.kind!r}")
+
+
+@dataclass(frozen=True)
 class Family:
     """
     A task family of the experiments (or a variant of one with other env kwargs).
@@ -89,6 +110,7 @@ class Family:
     :param competence: the competence criteria of PEARL's posterior policy on training tasks (all must pass)
     :param return_margin: equivalence margin of the mean return, in this family's reward units (for
         the verdicts of return claims)
+    :param prior_bar: the task-independent bar of the prior-optimality gap (None: the family has none)
     """
 
     name: str
@@ -100,6 +122,7 @@ class Family:
     budget_family: str | None = None
     competence: tuple[Criterion, ...] = ()
     return_margin: float = 1.0
+    prior_bar: PriorBar | None = None
 
     def __post_init__(self) -> None:
         check_name(self.name, "family")
@@ -219,6 +242,10 @@ class Experiment:
     :param reference: the variant the claims compare with (PEARL, or alpha = 0)
     :param paper: the paper's numbers
     :param claims: the paper's comparisons, each with a verdict in the report
+    :param shared: variants whose runs belong to another experiment, ``{variant: experiment}``: the other experiment
+        declares the same variant (same algorithm and overrides) on the same families with the same eval seed, so its
+        runs are this experiment's too (planned, skipped and stored under the other experiment's folder, reported
+        in both); checked by :func:`check_shared`
     """
 
     name: str
@@ -232,6 +259,7 @@ class Experiment:
     reference: str = "pearl"
     paper: tuple[PaperCell, ...] = ()
     claims: tuple[Claim, ...] = ()
+    shared: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         check_name(self.name, "experiment")
@@ -259,6 +287,10 @@ class Experiment:
                     f"experiment {self.name}: {type(item).__name__} {item} names an unknown family or variant "
                     f"(families {sorted(families)}, variants {sorted(variants)})"
                 )
+
+    def owner(self, variant: str) -> str:
+        """The experiment whose results folder holds the runs of ``variant`` (this one, unless it is shared)."""
+        return self.shared.get(variant, self.name)
 
     def family(self, name: str) -> Family:
         """The family called ``name`` (ValueError listing the experiment's families otherwise)."""
@@ -289,6 +321,29 @@ class Experiment:
             if (cell.family, cell.variant, cell.metric) == (family, variant, metric) and resolve_k(cell.k, last_k) == k:
                 return cell
         return None
+
+
+def check_shared(experiment: Experiment, experiments: Mapping[str, Experiment]) -> None:
+    """
+    Raise a clear error unless every shared variant of ``experiment`` is declared identically by its owner.
+
+    :param experiment: the experiment
+    :param experiments: every experiment by name
+    """
+    for name, owner_name in experiment.shared.items():
+        where = f"experiment {experiment.name}: shared variant {name!r}"
+        owner = experiments.get(owner_name)
+        if owner is None or owner is experiment:
+            raise ValueError(f"{where} names the owner {owner_name!r}, which is not another experiment")
+        mine = experiment.variant(name)
+        theirs = owner.variant(name)
+        if (mine.algo, dict(mine.overrides)) != (theirs.algo, dict(theirs.overrides)):
+            raise ValueError(f"{where} is declared differently in {owner_name}: {theirs} against {mine}")
+        if owner.eval_seed != experiment.eval_seed:
+            raise ValueError(f"{where}: {owner_name} has eval seed {owner.eval_seed}, not {experiment.eval_seed}")
+        for family in experiment.families:
+            if owner.family(family.name) != family:
+                raise ValueError(f"{where}: family {family.name} differs in {owner_name}")
 
 
 def resolve_k(k: int, last_k: int) -> int:

@@ -6,7 +6,9 @@ every optimizer its own gradient:
 
 - KL(q(z|c) || N(0, I)) and the critic loss reach the encoder (and the critic), nothing else does;
 - the prior critic's soft Bellman loss under z0 reaches the prior critic only (with ``prior_data="prior"``, on the
-  rows collected with z from the prior only, as is the actor's prior term);
+  rows collected with z from the prior only, as is the actor's prior term), and so does its conservative penalty
+  (``prior_conservative_weight``: the z0 policy's actions enter it detached); its target is computed without
+  gradients, from the prior critic's target network or (``prior_target="main"``) the critic's;
 - the actor terms L(b, z.detach()) and, for PEARL+, L(b, z0) read the critics through frozen
   parameters and reach the actor only.
 """
@@ -19,6 +21,7 @@ import torch as th
 
 from sb3_pearl.common.context import kl_to_standard_normal
 from sb3_pearl.common.soft_actor_critic import (
+    conservative_gap,
     critic_regression_loss,
     entropy_log_prob,
     evaluate_policy,
@@ -86,22 +89,38 @@ def compute_losses(model: PEARL, replay: MetaReplaySamples, context: th.Tensor, 
             raise ValueError("prior_data='prior' needs replay batches with prior_z flags (TaskReplayBuffer.sample)")
         prior_rows = replay.prior_z.reshape(rows, 1)  # (T*B, 1) 0/1
 
-    # Prior critic Q~(s, a, z0): its own soft Bellman loss under z0.
+    # Prior critic Q~(s, a, z0) (Q~(s, a) with prior_critic_input="state"): its own soft Bellman loss under z0,
+    # bootstrapped from its own target network (the paper) or from the critic's target at z0 (prior_target="main").
     prior_critic_loss = th.zeros((), device=model.device)
     if model.prior_critic is not None:
         assert model.prior_critic_target is not None
+        prior_features = model.policy.prior_critic_features
         with th.no_grad():
-            v0_next = soft_value(q_of_policy(model.prior_critic_target, x0_next, next_pe0), next_pe0, ent_coef)
-            target0 = rewards + not_done * model.gamma * v0_next
-        q0 = q_of_actions(model.prior_critic, x_prior, actions, discrete)
+            if model.prior_target == "main":
+                q0_next = q_of_policy(model.critic_target, x0_next, next_pe0)
+            else:
+                q0_next = q_of_policy(model.prior_critic_target, prior_features(next_obs, z0_rows), next_pe0)
+            target0 = rewards + not_done * model.gamma * soft_value(q0_next, next_pe0, ent_coef)  # (T*B, 1)
+        x0_critic = prior_features(obs, z0_rows)
+        q0 = q_of_actions(model.prior_critic, x0_critic, actions, discrete)  # (n_prior_critics, T*B, 1)
         prior_critic_loss = critic_regression_loss(q0, target0, weights=prior_rows)
+        if model.prior_conservative_weight > 0:
+            # Conservative penalty (CQL): push Q~ down at the z0 policy's actions, up at the stored ones.
+            gap = conservative_gap(model.prior_critic, x0_critic, pe_prior, q0)  # (n_prior_critics, T*B, 1)
+            weights = None if prior_rows is None else prior_rows.unsqueeze(0)
+            penalty = gap.mean(dim=(1, 2)) if weights is None else masked_mean(gap, weights, dims=(1, 2))
+            prior_critic_loss = prior_critic_loss + model.prior_conservative_weight * penalty.sum()
 
     # Actor: L_actor(b, z.detach()) and, for PEARL+, L_actor(b, z0); critics frozen.
     actor_loss = -soft_value(q_of_policy(model.critic.forward_frozen, x_post, pe_post), pe_post, ent_coef).mean()
     prior_actor_loss = th.zeros((), device=model.device)
     if use_prior:
-        prior_q = model.prior_critic if model.prior_critic is not None else model.critic  # "shared": Q(s, a, z0)
-        prior_values = soft_value(q_of_policy(prior_q.forward_frozen, x_prior, pe_prior), pe_prior, ent_coef)  # (T*B, 1)
+        if model.prior_critic is not None:
+            x0_actor_term = model.policy.prior_critic_features(obs, z0_rows)  # (T*B, obs_dim [+ L])
+            prior_q = q_of_policy(model.prior_critic.forward_frozen, x0_actor_term, pe_prior)
+        else:  # "shared": Q(s, a, z0)
+            prior_q = q_of_policy(model.critic.forward_frozen, x_prior, pe_prior)
+        prior_values = soft_value(prior_q, pe_prior, ent_coef)  # (T*B, 1)
         prior_actor_loss = -(prior_values.mean() if prior_rows is None else masked_mean(prior_values, prior_rows))
 
     ent_coef_loss = th.zeros((), device=model.device)

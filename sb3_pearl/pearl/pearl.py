@@ -131,6 +131,8 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     prior_coef: float = 0.0
     prior_critic_mode: str = "none"
     prior_data: str = "all"
+    prior_target: str = "prior"
+    prior_conservative_weight: float = 0.0
     # Called after every gradient step of train() while set (the progress callback sets it during learn()); never saved.
     gradient_step_callback: Callable[[], None] | None = None
 
@@ -223,6 +225,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
         )
         # Saved with the model: PEARL keeps the class defaults (no prior term), PEARLPlus set its own.
         self.prior_coef, self.prior_critic_mode, self.prior_data = self.prior_coef, self.prior_critic_mode, self.prior_data
+        self.prior_target, self.prior_conservative_weight = self.prior_target, self.prior_conservative_weight
         self.kl_weight = kl_weight
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy

@@ -10,11 +10,12 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from sb3_pearl.common.checks import check_arch, check_int, check_real
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.pearl.pearl import PEARL
-from sb3_pearl.pearl.policies import PRIOR_CRITIC_MODES, PEARLPolicy
+from sb3_pearl.pearl.policies import PRIOR_CRITIC_INPUTS, PRIOR_CRITIC_MODES, PEARLPolicy
 
 SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
 
 PRIOR_DATA_MODES = ("all", "prior")
+PRIOR_TARGETS = ("prior", "main")
 
 
 class PEARLPlus(PEARL):
@@ -41,6 +42,17 @@ class PEARLPlus(PEARL):
         collected with z from the prior (not in the paper, off by default): the prior critic is then fitted, and the
         actor's prior term scored, on the states the z0 policy itself visits, not on states that posterior policies
         reached on their way to each task's own target (task-confounded data, docs/diagnostics.md)
+    :param prior_critic_input: ``"state_z0"`` (the paper: Q~(s, a, z0)) or ``"state"``: a z-free prior critic Q~(s, a)
+        (not in the paper, off by default; z0 ~ N(0, I) carries no task information, docs/pearl.md)
+    :param prior_target: what the prior critic bootstraps from: ``"prior"``, its own target network (the paper's
+        separate Q-network), or ``"main"``, the critic's target network at z0, ``r + gamma * V(s', z0)`` with
+        ``V = Q_target(s', a', z0) - alpha log pi(a' | s', z0)`` (not in the paper, off by default; docs/pearl.md)
+    :param prior_conservative_weight: weight of a conservative (CQL) penalty on the prior critic: Q~ at the z0
+        policy's actions minus Q~ at the stored actions (0: off, the paper; docs/pearl.md)
+
+    The prior-critic designs compared in docs/pearl.md ("Prior-critic designs") combine ``prior_n_critics`` (2: twin
+    minimum; 5: a pessimistic ensemble), ``prior_data``, ``prior_critic_input``, ``prior_target`` and
+    ``prior_conservative_weight``; every default is the paper's form.
     """
 
     def __init__(
@@ -57,6 +69,9 @@ class PEARLPlus(PEARL):
         prior_critic_arch: list[int] | None = None,
         prior_n_critics: int = 1,
         prior_data: str = "all",
+        prior_critic_input: str = "state_z0",
+        prior_target: str = "prior",
+        prior_conservative_weight: float = 0.0,
         latent_dim: int = 5,
         kl_weight: float = 0.1,
         use_next_obs_in_context: bool = False,
@@ -98,11 +113,31 @@ class PEARLPlus(PEARL):
                 f"unknown prior_data {prior_data!r}: expected one of {PRIOR_DATA_MODES} (the replay rows the prior terms "
                 "use: all of them, as in the paper, or only those collected with z from the prior)"
             )
+        if prior_critic_input not in PRIOR_CRITIC_INPUTS:
+            raise ValueError(
+                f"unknown prior_critic_input {prior_critic_input!r}: expected one of {PRIOR_CRITIC_INPUTS} "
+                "(the paper's Q~(s, a, z0), or a z-free Q~(s, a))"
+            )
+        if prior_target not in PRIOR_TARGETS:
+            raise ValueError(
+                f"unknown prior_target {prior_target!r}: expected one of {PRIOR_TARGETS} (the prior critic's own target "
+                "network, as in the paper, or the critic's target network at z0)"
+            )
+        check_real("prior_conservative_weight", prior_conservative_weight, 0.0, hint="0 turns the CQL penalty off")
+        if prior_critic == "shared" and (
+            prior_critic_input != "state_z0" or prior_target != "prior" or prior_conservative_weight > 0
+        ):
+            raise ValueError(
+                "prior_critic_input, prior_target and prior_conservative_weight configure the separate prior critic: "
+                "prior_critic='shared' has none (use prior_critic='separate')"
+            )
         # Set before PEARL's constructor, which builds the prior critic only when the prior term uses it.
         self.prior_coef = prior_coef
         self.prior_critic_mode = prior_critic
         self.prior_data = prior_data
-        policy_kwargs = {**(policy_kwargs or {}), "prior_n_critics": prior_n_critics}
+        self.prior_target = prior_target
+        self.prior_conservative_weight = float(prior_conservative_weight)
+        policy_kwargs = {**(policy_kwargs or {}), "prior_n_critics": prior_n_critics, "prior_critic_input": prior_critic_input}
         if prior_critic_arch is not None:
             policy_kwargs["prior_critic_arch"] = prior_critic_arch
         super().__init__(

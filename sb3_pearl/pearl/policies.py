@@ -22,6 +22,7 @@ from sb3_pearl.common.context import product_of_gaussians
 from sb3_pearl.common.networks import CategoricalActor, InplaceReLU, LatentCritic, SquashedGaussianActor, mlp_with_fp32_head
 
 PRIOR_CRITIC_MODES = ("separate", "shared", "none")
+PRIOR_CRITIC_INPUTS = ("state_z0", "state")
 
 
 class ContextEncoder(nn.Module):
@@ -71,7 +72,10 @@ class PEARLPolicy(BasePolicy):
     :param prior_critic_arch: hidden sizes of the prior critic (paper: [300]*3, ablation [100]*3)
     :param n_critics: number of Q networks of the critic (twin Q: 2)
     :param prior_n_critics: number of Q networks of the prior critic; the paper adds "a new Q-network"
-        Q~ (one network, Section IV), which is the default; 2 gives it a twin-Q minimum as well
+        Q~ (one network, Section IV), which is the default; 2 gives it a twin-Q minimum as well, more a
+        pessimistic ensemble (the minimum over all of them, in its target and in the actor's prior term)
+    :param prior_critic_input: ``"state_z0"`` (the paper: Q~(s, a, z0)) or ``"state"`` (a z-free prior critic
+        Q~(s, a): z0 ~ N(0, I) carries no task information, so it is an input the critic can only overfit)
     :param optimizer_class: optimizer
     :param optimizer_kwargs: extra optimizer arguments
     """
@@ -90,6 +94,7 @@ class PEARLPolicy(BasePolicy):
         prior_critic_arch: list[int] | None = None,
         n_critics: int = 2,
         prior_n_critics: int = 1,
+        prior_critic_input: str = "state_z0",
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
     ):
@@ -99,6 +104,8 @@ class PEARLPolicy(BasePolicy):
             raise ValueError(f"PEARL supports Box and Discrete action spaces, got {type(action_space).__name__}")
         if prior_critic not in PRIOR_CRITIC_MODES:
             raise ValueError(f"prior_critic must be one of {PRIOR_CRITIC_MODES}, got {prior_critic!r}")
+        if prior_critic_input not in PRIOR_CRITIC_INPUTS:
+            raise ValueError(f"prior_critic_input must be one of {PRIOR_CRITIC_INPUTS}, got {prior_critic_input!r}")
         if latent_dim < 1:
             raise ValueError(f"latent_dim must be >= 1, got {latent_dim}")
         super().__init__(
@@ -119,6 +126,7 @@ class PEARLPolicy(BasePolicy):
         self.prior_critic_arch = list(prior_critic_arch) if prior_critic_arch is not None else [300, 300, 300]
         self.n_critics = n_critics
         self.prior_n_critics = prior_n_critics
+        self.prior_critic_input = prior_critic_input
         self.discrete = isinstance(action_space, spaces.Discrete)
         self.obs_dim = int(observation_space.shape[0])
         self.action_dim = (
@@ -133,8 +141,8 @@ class PEARLPolicy(BasePolicy):
         """Size of one context transition: s, a (one-hot if Discrete), r[, s']."""
         return self.obs_dim * (2 if self.use_next_obs_in_context else 1) + self.action_dim + 1
 
-    def _make_critic(self, net_arch: list[int], n_critics: int) -> LatentCritic:
-        obs_z = self.obs_dim + self.latent_dim
+    def _make_critic(self, net_arch: list[int], n_critics: int, with_latent: bool = True) -> LatentCritic:
+        obs_z = self.obs_dim + (self.latent_dim if with_latent else 0)
         if self.discrete:
             return LatentCritic(obs_z, self.action_dim, net_arch, n_critics, self.layer_activation)
         return LatentCritic(obs_z + self.action_dim, 1, net_arch, n_critics, self.layer_activation)
@@ -154,8 +162,9 @@ class PEARLPolicy(BasePolicy):
         self.prior_critic: LatentCritic | None = None
         self.prior_critic_target: LatentCritic | None = None
         if self.prior_critic_mode == "separate":
-            self.prior_critic = self._make_critic(self.prior_critic_arch, self.prior_n_critics)
-            self.prior_critic_target = self._make_critic(self.prior_critic_arch, self.prior_n_critics)
+            with_z0 = self.prior_critic_input == "state_z0"
+            self.prior_critic = self._make_critic(self.prior_critic_arch, self.prior_n_critics, with_z0)
+            self.prior_critic_target = self._make_critic(self.prior_critic_arch, self.prior_n_critics, with_z0)
             self.prior_critic_target.load_state_dict(self.prior_critic.state_dict())
             self.prior_critic_target.requires_grad_(False)
 
@@ -188,6 +197,7 @@ class PEARLPolicy(BasePolicy):
             prior_critic_arch=self.prior_critic_arch,
             n_critics=self.n_critics,
             prior_n_critics=self.prior_n_critics,
+            prior_critic_input=self.prior_critic_input,
             optimizer_class=self.optimizer_class,
             optimizer_kwargs=self.optimizer_kwargs,
         )
@@ -208,6 +218,12 @@ class PEARLPolicy(BasePolicy):
         if self.use_next_obs_in_context:
             parts.append(next_observations)
         return th.cat(parts, dim=-1)
+
+    def prior_critic_features(self, observations: th.Tensor, z0: th.Tensor) -> th.Tensor:
+        """The prior critic's input (without the action) for observations (N, obs_dim) and latents z0 (N, L)."""
+        if self.prior_critic_input == "state":
+            return observations
+        return th.cat([observations, z0], dim=-1)
 
     # -- acting ------------------------------------------------------------------------------
     def act(self, observations: th.Tensor, z: th.Tensor, deterministic: bool = False) -> th.Tensor:

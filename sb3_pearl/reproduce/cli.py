@@ -78,6 +78,13 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
     report.add_argument("--out", default="docs/results.md", help="markdown file; its text outside the markers is kept")
 
+    measure = sub.add_parser(
+        "measure", help="fill in the prior-critic measures of runs written before they existed (from model.zip)"
+    )
+    measure.add_argument("experiments", nargs="*", help="only these experiments (default: all)")
+    measure.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
+    measure.add_argument("--force", action="store_true", help="measure runs that already have the measures again")
+
     one = sub.add_parser("run-one", help=argparse.SUPPRESS)  # what each child process of `run` executes
     one.add_argument("--experiment", required=True)
     one.add_argument("--family", required=True)
@@ -155,6 +162,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             from sb3_pearl.reproduce.report import write_report
 
             print(f"wrote {write_report(args.results_dir, args.out)}")
+            return 0
+        if args.command == "measure":
+            import torch as th
+
+            from sb3_pearl.reproduce.prior_measures import measure_results
+
+            th.set_num_threads(1)
+            for name in args.experiments:
+                get_experiment(name)  # an unknown name fails here, with the known ones
+            written = measure_results(args.results_dir, args.experiments or None, args.force)
+            print(f"{len(written)} run(s) measured")
             return 0
     except ValueError as error:
         print(f"error: {error}", file=sys.stderr)

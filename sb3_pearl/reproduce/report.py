@@ -78,6 +78,12 @@ def load_groups(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str
         result = read_result(path)
         key = (result["experiment"], result["budget_preset"], result["family"])
         groups[key][result["variant"]][int(result["seed"])] = result
+    # Shared variants: the owner's runs join the groups of every experiment that shares them (when it has runs).
+    for (experiment_name, budget, family), group in list(groups.items()):
+        for other in EXPERIMENTS.values():
+            for variant, owner in other.shared.items():
+                if owner == experiment_name and variant in group and (other.name, budget, family) in groups:
+                    groups[(other.name, budget, family)][variant] = group[variant]
     return {key: {variant: dict(seeds) for variant, seeds in group.items()} for key, group in sorted(groups.items())}
 
 

@@ -8,7 +8,8 @@ of the family env, with the experiment's fixed ``eval_seed``, so every variant a
 is meta-tested on the same tasks; the meta-test runs with ``seed=eval_seed`` and
 ``crn_seed=eval_seed`` (the same env reset seeds and prior draws for every model). Nothing is chosen
 on test tasks. The shifted meta-test draws its tasks the same way from the shifted env. The
-competence check runs on the model's first ``n_tasks`` *training* tasks.
+competence check runs on the model's first ``n_tasks`` *training* tasks. The prior-critic measures
+(calibration and prior-optimality gap, :mod:`sb3_pearl.reproduce.prior_measures`) come next.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from sb3_pearl.reproduce.layout import (
     run_dir,
     write_json_atomic,
 )
+from sb3_pearl.reproduce.prior_measures import compute_prior_measures
 
 DIAGNOSED_ALGOS = ("pearl", "pearlplus")
 
@@ -219,6 +221,16 @@ def run_one(
             "summary": on_train.summary,
         }
 
+    start = time.time()
+    try:
+        prior_critic = compute_prior_measures(
+            model, variant.algo, family, env_kwargs, settings, tasks, held_out.summary[0], experiment.eval_seed, seed
+        )
+    except Exception:  # like the diagnostics: a bug here must not throw away a trained run (`reproduce measure` redoes it)
+        prior_critic = {"error": traceback.format_exc()}
+        log(f"[{key.label()}] prior-critic measures failed:\n{prior_critic['error']}", flush=True)
+    timings["prior_measures"] = time.time() - start
+
     diagnostics: dict[str, Any]
     if variant.algo in DIAGNOSED_ALGOS:
         start = time.time()
@@ -252,6 +264,7 @@ def run_one(
             "meta_test": _meta_test_record(held_out, meta_test_s, env_kwargs),
             "shift": shift,
             "competence": competence,
+            "prior_critic": prior_critic,
             "diagnostics": diagnostics,
         }
     )

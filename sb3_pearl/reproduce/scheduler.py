@@ -95,7 +95,8 @@ def plan_runs(
         for variant in chosen_variants:
             budget = load_budget(budget_preset, family.budget_name, variant.algo)
             run_kwargs(budget, variant, f"{experiment.name} {family.name} (preset {budget_preset})")
-            runs.extend(RunKey(experiment.name, family.name, variant.name, seed) for seed in seeds)
+            # a shared variant's runs live in (and are run as part of) the experiment that owns them
+            runs.extend(RunKey(experiment.owner(variant.name), family.name, variant.name, seed) for seed in seeds)
     return runs
 
 

@@ -22,10 +22,35 @@ if TYPE_CHECKING:
 def _critic_for_prior(model: PEARL) -> tuple[Any, str]:
     """The critic that scores the prior term: Q~ (separate) or Q (shared mode, PEARL), with its name."""
     if model.prior_critic is not None:
+        if model.policy.prior_critic_input == "state":
+            return model.prior_critic, "prior critic Q~(s, a) (z-free)"
         return model.prior_critic, "prior critic Q~(s, a, z0)"
     if model.prior_critic_mode == "shared":
         return model.critic, "critic Q(s, a, z0) (prior_critic='shared': the prior term's critic)"
     return model.critic, "critic Q(s, a, z0) (PEARL has no prior critic)"
+
+
+def _state_z(observations: th.Tensor, z: th.Tensor) -> th.Tensor:
+    return th.cat([observations, z], dim=-1)
+
+
+def rank_correlation(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman's rank correlation (average ranks for ties); nan when either side is constant or has < 3 values."""
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    if len(x) < 3 or x.std() == 0 or y.std() == 0:
+        return math.nan
+    rx, ry = _average_ranks(x), _average_ranks(y)
+    return float(np.corrcoef(rx, ry)[0, 1])
+
+
+def _average_ranks(values: np.ndarray) -> np.ndarray:
+    order = np.argsort(values, kind="mergesort")
+    ranks = np.empty(len(values))
+    ranks[order] = np.arange(len(values), dtype=float)
+    for value in np.unique(values):  # ties share their mean rank
+        tied = values == value
+        ranks[tied] = ranks[tied].mean()
+    return ranks
 
 
 def compute_calibration(
@@ -48,7 +73,11 @@ def compute_calibration(
     trajectory from ``s0`` is rolled out; ``a0`` is its first action. ``mc_return`` is that sum over
     the trajectory; ``mc_return_bootstrapped`` adds ``gamma^T * V~(s_T, z0)`` when the trajectory was
     cut by the time limit (as the training target does; 0 after a true termination). A calibrated
-    critic has ``bias = q - mc_return_bootstrapped`` near 0.
+    critic has ``bias = q - mc_return_bootstrapped`` near 0. The first-class measures (result.json
+    ``prior_critic``, ``reproduce report``) are ``bias``, ``relative_error`` = mean |Q~ - MC| over the
+    (z0, task) pairs divided by mean |MC| (scale-free: 0.25 means errors a quarter the size of the
+    returns) and ``rank_corr``, Spearman's rank correlation of Q~ and MC over every (z0, task) pair
+    (does Q~ order start states and prior draws as their returns do?).
 
     :param model: the model
     :param env: the env
@@ -59,6 +88,7 @@ def compute_calibration(
     :return: means over (z0, task) and the correlation over z0 draws of Q~ with the returns
     """
     critic, critic_name = _critic_for_prior(model)
+    critic_features = model.policy.prior_critic_features if critic is model.prior_critic else _state_z
     ent_coef = model._current_ent_coef()
     discrete = model.policy.discrete
     q = np.zeros((len(z0), len(tasks)))
@@ -75,14 +105,15 @@ def compute_calibration(
             soft[1:] -= float(ent_coef) * traj.log_probs[1:]  # the entropy bonus enters from t = 1 on
             mc[i, j] = float((discounts * soft).sum())
             ends = th.as_tensor(traj.observations[[0, -1]], device=model.device)  # (2, obs_dim): s_0 and s_T
-            x = th.cat([ends, z_t.expand(2, -1)], dim=-1)  # (2, obs_dim + L)
+            x = th.cat([ends, z_t.expand(2, -1)], dim=-1)  # (2, obs_dim + L): the actor's input
+            x_q = critic_features(ends, z_t.expand(2, -1))  # the critic's input (z-free for Q~(s, a))
             with th.no_grad():
                 a0 = th.as_tensor(traj.actions[:1], device=model.device)  # (1, act_dim)
-                q[i, j] = float(q_of_actions(critic, x[:1], a0, discrete).min(dim=0).values)
+                q[i, j] = float(q_of_actions(critic, x_q[:1], a0, discrete).min(dim=0).values)
                 tail = 0.0
                 if not traj.terminated:
                     pe = evaluate_policy(model.actor, x[1:])
-                    tail = float(soft_value(q_of_policy(critic, x[1:], pe), pe, ent_coef))
+                    tail = float(soft_value(q_of_policy(critic, x_q[1:], pe), pe, ent_coef))
             boot[i, j] = mc[i, j] + model.gamma**traj.length * tail
             env_returns[i, j] = traj.episode_return
             lengths[i, j] = traj.length
@@ -100,6 +131,8 @@ def compute_calibration(
         "mc_return_bootstrapped_mean": float(boot.mean()),
         "bias": float((q - boot).mean()),
         "abs_error_mean": float(np.abs(q - boot).mean()),
+        "relative_error": float(np.abs(q - boot).mean() / np.abs(boot).mean()) if np.abs(boot).mean() > 0 else math.nan,
+        "rank_corr": rank_correlation(q.ravel(), boot.ravel()),
         "q_std_over_z0": float(q_z.std()),
         "mc_std_over_z0": float(boot_z.std()),
         "q_mc_corr_over_z0": corr,
