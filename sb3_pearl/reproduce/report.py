@@ -31,6 +31,7 @@ from sb3_pearl.common.statistics import wilson_interval
 from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Claim, Experiment, resolve_k
 from sb3_pearl.reproduce.layout import find_results, read_result
+from sb3_pearl.reproduce.prior_report import prior_critic_table, selection_table
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval, verdict
 
 BEGIN = "<!-- reproduce:begin -->"
@@ -454,6 +455,9 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
                 *diagnostics,
                 "",
             ]
+        prior_critic = prior_critic_table(experiment, family, group)
+        if prior_critic:
+            out += [*prior_critic, ""]
         out += ["Wall times:", "", *timing_table(experiment, group), ""]
         name = f"reproduce_{experiment_name}_{family}_{budget}.png"
         title = f"{experiment.name} / {family} (budget {budget})"
@@ -462,6 +466,11 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         seeds_name = f"reproduce_{experiment_name}_{family}_{budget}_seeds.png"
         if plot_seeds(experiment, group, Path(figures_dir) / seeds_name, title=title):
             out += [f"![per-seed rates, {experiment_name} / {family}]({figures_link.rstrip('/')}/{seeds_name})", ""]
+    for experiment in EXPERIMENTS.values():
+        by_family = {family: group for (name, _, family), group in groups.items() if name == experiment.name}
+        selection = selection_table(experiment, by_family) if experiment.name == "prior-critic" else []
+        if selection:
+            out += [f"### {experiment.title}: the selection", "", *selection, ""]
     return "\n".join(out)
 
 

@@ -1,0 +1,216 @@
+"""The prior-critic part of ``reproduce report``: the measures per variant and the pre-written selection rule.
+
+:func:`prior_critic_table` shows, per variant of a group, the calibration of the prior term's critic and the
+prior-optimality gap (result.json ``prior_critic``, :mod:`sb3_pearl.reproduce.prior_measures`); a family whose bar
+is a variant (Walker2D-vel: Fine-Tune) is paired with that variant's run of the same seed. :func:`selection_table`
+applies the selection rule of docs/pearl.md ("The selection rule", written before the runs) to the ``prior-critic``
+experiment: training-task measures only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from sb3_pearl.experiments.prior_critic import DESIGNS
+from sb3_pearl.experiments.spec import Experiment
+
+Group = Mapping[str, Mapping[int, dict[str, Any]]]
+
+CALIBRATED_RELATIVE_ERROR = 0.25  # docs/pearl.md, the selection rule, step 2
+CALIBRATED_RANK_CORR = 0.5
+RETURN_TIE = 0.5  # step 3: designs within 0.5 of return are ordered by violations
+N_SELECTED = 2
+
+
+def _number(value: Any) -> float:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+
+
+def _fmt(value: float, digits: int = 2, scale: float = 1.0) -> str:
+    return "n/a" if not math.isfinite(value) else f"{value * scale:.{digits}f}"
+
+
+def run_gaps(result: dict[str, Any], bar_run: dict[str, Any] | None, part: str) -> tuple[float, float]:
+    """
+    The (return, violation) gap of one run on ``part`` (``train`` or ``test``) against its family's bar.
+
+    :param result: the run's result
+    :param bar_run: the same seed's run of the bar variant (a variant bar), None for a scripted bar
+    :param part: ``train`` or ``test``
+    :return: model minus bar; nan where a value is missing
+    """
+    entry = ((result.get("prior_critic") or {}).get("prior_optimality") or {}).get(part) or {}
+    if bar_run is None:
+        gap = entry.get("gap") or {}
+        return _number(gap.get("return")), _number(gap.get("violation"))
+    bar = (((bar_run.get("prior_critic") or {}).get("prior_optimality") or {}).get(part) or {}).get("model") or {}
+    mine = entry.get("model") or {}
+    return (
+        _number(mine.get("return")) - _number(bar.get("return")),
+        _number(mine.get("violation")) - _number(bar.get("violation")),
+    )
+
+
+def calibration_of(result: dict[str, Any]) -> tuple[float, float, float]:
+    """(bias, relative error, rank correlation) of one run; nan where missing (Fine-Tune, MAML)."""
+    calibration = (result.get("prior_critic") or {}).get("calibration") or {}
+    return tuple(_number(calibration.get(key)) for key in ("bias", "relative_error", "rank_corr"))  # type: ignore[return-value]
+
+
+def _measured(result: dict[str, Any]) -> bool:
+    section = result.get("prior_critic")
+    return isinstance(section, dict) and "error" not in section
+
+
+def _bar_runs(experiment: Experiment, family: str, group: Group) -> Mapping[int, dict[str, Any]] | None:
+    bar = experiment.family(family).prior_bar
+    if bar is None or bar.kind != "variant":
+        return None
+    return group.get(bar.name, {})
+
+
+def _nanmean(values: Sequence[float]) -> float:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else math.nan
+
+
+def _nanmedian(values: Sequence[float]) -> float:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.median(finite)) if finite else math.nan
+
+
+def prior_critic_table(experiment: Experiment, family: str, group: Group) -> list[str]:
+    """Per variant: the calibration (medians over seeds, mean bias) and the prior-optimality gaps (means over seeds)."""
+    bar = experiment.family(family).prior_bar
+    bar_runs = _bar_runs(experiment, family, group)
+    lines = [
+        "| variant | bias Q~ - MC | rel. error (median) | rank corr. (median) | return gap, train | violation gap, train "
+        "| return gap, test | violation gap, test | seeds |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for variant in [v.name for v in experiment.variants if v.name in group]:
+        runs = {
+            s: r
+            for s, r in group[variant].items()
+            if isinstance(r.get("prior_critic"), dict) and "error" not in r["prior_critic"]
+        }
+        if not runs:
+            continue
+        pairs = {s: None if bar_runs is None else bar_runs.get(s) for s in runs}
+        if bar_runs is not None:
+            runs = {s: r for s, r in runs.items() if pairs[s] is not None}
+        calibration = [calibration_of(r) for r in runs.values()]
+        train = [run_gaps(r, pairs[s], "train") for s, r in runs.items()]
+        test = [run_gaps(r, pairs[s], "test") for s, r in runs.items()]
+        cells = [
+            _fmt(_nanmean([c[0] for c in calibration]), 1),
+            _fmt(_nanmedian([c[1] for c in calibration])),
+            _fmt(_nanmedian([c[2] for c in calibration])),
+            _fmt(_nanmean([g[0] for g in train]), 1),
+            _fmt(_nanmean([g[1] for g in train]), 1, 100),
+            _fmt(_nanmean([g[0] for g in test]), 1),
+            _fmt(_nanmean([g[1] for g in test]), 1, 100),
+        ]
+        label = experiment.variant(variant).label
+        lines.append(f"| {label} | {' | '.join(cells)} | {len(runs)} |")
+    if len(lines) == 2 or bar is None:
+        return []
+    return [
+        f'Prior critic (docs/pearl.md, "Measures"): calibration on training tasks; prior-optimality gap = the prior '
+        f"policy's k = 0 return / violation rate (points) minus the bar's, bar: {bar.description}.",
+        "",
+        *lines,
+    ]
+
+
+class Ranked(NamedTuple):
+    """One design's row of the selection."""
+
+    design: str
+    variant: str
+    relative_error: float
+    rank_corr: float
+    return_gap: float
+    violation_gap: float
+    n_runs: int
+
+    @property
+    def calibrated(self) -> bool:
+        return self.relative_error < CALIBRATED_RELATIVE_ERROR and self.rank_corr > CALIBRATED_RANK_CORR
+
+
+def rank_designs(experiment: Experiment, groups: Mapping[str, Group], alpha: float = 0.1) -> list[Ranked]:
+    """
+    Steps 1-3 of the selection rule: every design at ``alpha`` over its runs on every family, best first.
+
+    :param experiment: the ``prior-critic`` experiment
+    :param groups: family -> its group of runs
+    :param alpha: the prior coefficient of the designs ranked
+    :return: the designs with runs, ranked
+    """
+    rows = []
+    for design in DESIGNS:
+        variant = f"alpha-{alpha:g}-{design}"
+        runs = [r for group in groups.values() for r in group.get(variant, {}).values() if _measured(r)]
+        if not runs:
+            continue
+        calibration = [calibration_of(r) for r in runs]
+        gaps = [run_gaps(r, None, "train") for r in runs]
+        rows.append(
+            Ranked(
+                design,
+                variant,
+                _nanmedian([c[1] for c in calibration]),
+                _nanmedian([c[2] for c in calibration]),
+                _nanmean([g[0] for g in gaps]),
+                _nanmean([g[1] for g in gaps]),
+                len(runs),
+            )
+        )
+    rows.sort(key=lambda r: -r.return_gap if math.isfinite(r.return_gap) else math.inf)
+    # Step 3's tie rule: neighbours within RETURN_TIE of return are ordered by the lower violation gap.
+    for _ in range(len(rows)):
+        for i in range(len(rows) - 1):
+            a, b = rows[i], rows[i + 1]
+            if abs(a.return_gap - b.return_gap) <= RETURN_TIE and b.violation_gap < a.violation_gap:
+                rows[i], rows[i + 1] = b, a
+    return rows
+
+
+def select(rows: Sequence[Ranked]) -> list[Ranked]:
+    """Step 4: the two best-ranked calibrated designs, topped up with the best-ranked others."""
+    chosen = [r for r in rows if r.calibrated][:N_SELECTED]
+    chosen += [r for r in rows if not r.calibrated][: N_SELECTED - len(chosen)]
+    return chosen
+
+
+def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list[str]:
+    """The selection rule applied to the runs there are, with how many runs each design has."""
+    rows = rank_designs(experiment, groups)
+    if not rows:
+        return []
+    chosen = {r.design for r in select(rows)}
+    lines = [
+        "| rank | design | median rel. error | median rank corr. | calibrated | mean return gap, train "
+        "| mean violation gap, train (points) | runs | selected |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for rank, row in enumerate(rows, start=1):
+        lines.append(
+            f"| {rank} | {row.design} ({DESIGNS[row.design][0]}) | {_fmt(row.relative_error)} | {_fmt(row.rank_corr)} | "
+            f"{'yes' if row.calibrated else 'no'} | {_fmt(row.return_gap, 1)} | {_fmt(row.violation_gap, 1, 100)} | "
+            f"{row.n_runs} | {'**selected**' if row.design in chosen else ''} |"
+        )
+    full = len(experiment.families) * len(experiment.seeds)
+    partial = [r.design for r in rows if r.n_runs < full]
+    note = f" Incomplete ({full} runs each when complete): {', '.join(partial)}." if partial else ""
+    return [
+        'Selection (docs/pearl.md, "The selection rule", written before the runs; training tasks only, alpha 0.1, '
+        f"both crash penalties pooled).{note}",
+        "",
+        *lines,
+    ]

@@ -1,0 +1,198 @@
+"""The prior-critic designs of PEARL+ (docs/pearl.md, "Prior-critic designs"): which parameters each loss reaches, the
+prior critic's loss computed by hand on a tiny batch, the checks of the arguments, save / load; the prior-critic measures
+(calibration, prior-optimality gap) and the experiments that share their reference runs."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from torch import nn
+
+from sb3_pearl import PEARLPlus
+from sb3_pearl.common.diagnostics.calibration import rank_correlation
+from sb3_pearl.common.meta_test import meta_test
+from sb3_pearl.common.scripted import ScriptedPolicy
+from sb3_pearl.envs.safe_point_goal import SCRIPTED_PRIORS
+from sb3_pearl.experiments import EXPERIMENTS
+from sb3_pearl.experiments.families import SAFE_POINT
+from sb3_pearl.experiments.prior_critic import DESIGNS, PRIOR_CRITIC, design_variant
+from sb3_pearl.experiments.spec import Experiment, check_shared
+from sb3_pearl.reproduce.prior_measures import compute_prior_measures, scripted_prior
+from sb3_pearl.reproduce.scheduler import plan_runs
+from tests.conftest import make_discrete_env
+from tests.test_pearl_losses import _is_zero, _reaches
+
+NEW_DESIGNS: dict[str, dict[str, Any]] = {
+    "zfree": {"prior_critic_input": "state"},
+    "maintarget": {"prior_target": "main"},
+    "ensemble5": {"prior_n_critics": 5},
+    "cql": {"prior_conservative_weight": 2.0},
+    "all": {"prior_critic_input": "state", "prior_target": "main", "prior_conservative_weight": 2.0, "prior_n_critics": 3},
+}
+
+
+def _model(design: dict[str, Any], discrete: bool, tiny_kwargs: dict[str, Any], **extra: Any) -> PEARLPlus:
+    env = make_discrete_env() if discrete else gym.make("PointGoalMeta-v0")
+    model = PEARLPlus("MlpPolicy", env, seed=0, **design, **extra, **tiny_kwargs)
+    model.learn(4 * tiny_kwargs["num_initial_steps"])
+    return model
+
+
+@pytest.mark.parametrize("discrete", [False, True])
+@pytest.mark.parametrize("design", sorted(NEW_DESIGNS))
+def test_each_design_keeps_the_gradient_isolation(design: str, discrete: bool, tiny_kwargs: dict[str, Any]) -> None:
+    model = _model(NEW_DESIGNS[design], discrete, tiny_kwargs)
+    losses = model._compute_losses(*model._sample_meta_batch())
+    # The prior critic's loss (with its conservative penalty) reaches the prior critic and nothing else ...
+    assert _reaches(losses.prior_critic_loss, model.prior_critic)
+    for module in (model.actor, model.critic, model.encoder):
+        assert _is_zero(losses.prior_critic_loss, module)
+    # ... the actor's prior term the actor only, and the encoder still learns from the critic loss and the KL only.
+    assert _reaches(losses.prior_actor_loss, model.actor)
+    for module in (model.prior_critic, model.critic, model.encoder):
+        assert _is_zero(losses.prior_actor_loss, module)
+    assert _is_zero(losses.critic_loss, model.prior_critic) and _reaches(losses.critic_loss, model.encoder)
+
+
+def _by_hand(model: PEARLPlus, replay: Any, z0: th.Tensor) -> th.Tensor:
+    """The prior critic's loss of a Discrete model written out with plain tensor operations (docs/pearl.md)."""
+    t, b = replay.rewards.shape[:2]
+    obs, next_obs = replay.observations.reshape(t * b, -1), replay.next_observations.reshape(t * b, -1)
+    actions = replay.actions.reshape(t * b).long()
+    z0_rows = z0.repeat_interleave(b, dim=0)
+    z_free = model.policy.prior_critic_input == "state"
+    with th.no_grad():
+        probs, log_probs = model.actor.probs(th.cat([next_obs, z0_rows], dim=-1))  # pi(. | s', z0): (N, A)
+        if model.prior_target == "main":
+            nets, x_next = model.critic_target.q_networks, th.cat([next_obs, z0_rows], dim=-1)
+        else:
+            nets, x_next = model.prior_critic_target.q_networks, next_obs if z_free else th.cat([next_obs, z0_rows], dim=-1)
+        q_next = th.stack([net(x_next) for net in nets]).min(dim=0).values  # (N, A)
+        v_next = (probs * (q_next - model.ent_coef_tensor * log_probs)).sum(dim=-1)  # (N,)
+        target = model.reward_scale * replay.rewards.reshape(-1) + (1 - replay.dones.reshape(-1)) * model.gamma * v_next
+    x = obs if z_free else th.cat([obs, z0_rows], dim=-1)
+    loss = th.zeros(())
+    for net in model.prior_critic.q_networks:
+        q_all = net(x)  # (N, A)
+        q_data = q_all[th.arange(len(actions)), actions]
+        loss = loss + ((q_data - target) ** 2).mean()
+        if model.prior_conservative_weight > 0:
+            loss = loss + model.prior_conservative_weight * (th.logsumexp(q_all, dim=-1) - q_data).mean()
+    return loss
+
+
+@pytest.mark.parametrize("design", ["paper", *sorted(NEW_DESIGNS)])
+def test_the_prior_critic_loss_by_hand(design: str, tiny_kwargs: dict[str, Any]) -> None:
+    model = _model(NEW_DESIGNS.get(design, {}), True, tiny_kwargs)
+    replay, context, z0 = model._sample_meta_batch(batch_size=3)
+    with th.no_grad():  # the targets must differ from the online networks for the test to see which one is used
+        for net in (*model.critic_target.q_networks, *model.prior_critic_target.q_networks):
+            for p in net.parameters():
+                p.add_(0.3 * th.randn_like(p))
+    losses = model._compute_losses(replay, context, z0)
+    assert th.allclose(losses.prior_critic_loss, _by_hand(model, replay, z0), rtol=1e-5, atol=1e-5)
+
+
+def test_the_designs_build_the_networks_they_say(tiny_kwargs: dict[str, Any]) -> None:
+    paper = _model({}, False, tiny_kwargs)
+    zfree = _model({"prior_critic_input": "state", "prior_n_critics": 5}, False, tiny_kwargs)
+    obs_dim, act_dim, latent = paper.policy.obs_dim, paper.policy.action_dim, paper.latent_dim
+    first = [net[0] for net in zfree.prior_critic.q_networks]
+    assert len(first) == 5 and all(isinstance(layer, nn.Linear) and layer.in_features == obs_dim + act_dim for layer in first)
+    assert paper.prior_critic.q_networks[0][0].in_features == obs_dim + latent + act_dim
+    # A z-free prior critic scores the same states and actions the same, whatever z0.
+    obs = th.randn(4, obs_dim)
+    features = [zfree.policy.prior_critic_features(obs, th.randn(4, latent)) for _ in range(2)]
+    assert th.equal(features[0], features[1]) and features[0].shape == (4, obs_dim)
+
+
+def test_the_design_arguments_are_checked_and_saved(tmp_path: Any, tiny_kwargs: dict[str, Any]) -> None:
+    for bad, match in (
+        ({"prior_critic_input": "z0"}, r"unknown prior_critic_input 'z0'.*\('state_z0', 'state'\)"),
+        ({"prior_target": "own"}, r"unknown prior_target 'own'.*\('prior', 'main'\)"),
+        ({"prior_conservative_weight": -1.0}, "prior_conservative_weight"),
+        ({"prior_critic": "shared", "prior_target": "main"}, "prior_critic='shared' has none"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            PEARLPlus("MlpPolicy", "PointGoalMeta-v0", **bad, **tiny_kwargs)
+    design = NEW_DESIGNS["all"]
+    model = _model(design, False, tiny_kwargs)
+    model.save(tmp_path / "model")
+    loaded = PEARLPlus.load(tmp_path / "model")
+    assert (loaded.prior_target, loaded.prior_conservative_weight) == ("main", 2.0)
+    assert loaded.policy.prior_critic_input == "state" and len(loaded.prior_critic.q_networks) == 3
+    x = th.randn(5, loaded.policy.obs_dim + loaded.policy.action_dim)
+    assert th.equal(loaded.prior_critic(x), model.prior_critic(x))
+
+
+def test_rank_correlation_by_hand() -> None:
+    # Spearman without ties: 1 - 6 * sum d^2 / (n (n^2 - 1)) = 1 - 6 * 2 / 60
+    assert rank_correlation(np.array([1.0, 2.0, 3.0, 4.0]), np.array([10.0, 30.0, 20.0, 40.0])) == pytest.approx(0.8)
+    # Ties share their mean rank: ranks (0.5, 0.5, 2) against (0, 1, 2)
+    assert rank_correlation(np.array([1.0, 1.0, 2.0]), np.array([1.0, 2.0, 3.0])) == pytest.approx(np.sqrt(3) / 2)
+    assert np.isnan(rank_correlation(np.ones(4), np.arange(4.0)))
+
+
+def test_a_scripted_policy_through_the_meta_test_protocol() -> None:
+    """'still' never moves: every goal is on the unit circle, so each step costs exactly 1, 30 steps, no hazard."""
+    env = gym.make("SafePointGoalMeta-v0")
+    tasks = env.unwrapped.sample_tasks(4, seed=0)
+    result = meta_test(ScriptedPolicy(SCRIPTED_PRIORS["still"], "still"), env, tasks, n_adapt=2, n_repeats=2, seed=0)
+    assert [entry["k"] for entry in result.summary] == [0, 1, 2]
+    for entry in result.summary:
+        assert entry["return_mean"] == pytest.approx(-30.0) and entry["violation_rate"] == 0.0
+    with pytest.raises(ValueError, match="declares no scripted policy 'fly'"):
+        scripted_prior("SafePointGoalMeta-v0", "fly")
+
+
+def test_the_prior_measures_of_a_loaded_model_are_those_of_the_trained_one(tmp_path: Any, tiny_kwargs: dict[str, Any]) -> None:
+    env = gym.make("SafePointGoalMeta-v0")
+    model = PEARLPlus("MlpPolicy", env, seed=0, prior_critic_input="state", **tiny_kwargs).learn(240)
+    settings = {"n_tasks": 3, "n_repeats": 2}
+    tasks = env.unwrapped.sample_tasks(3, seed=11)
+    test_k0 = meta_test(model, env, tasks, n_adapt=0, n_repeats=2, seed=11, crn_seed=11).summary[0]
+
+    def measure(m: PEARLPlus) -> dict[str, Any]:
+        return compute_prior_measures(m, "pearlplus", SAFE_POINT, {}, settings, tasks, test_k0, 11, 0)
+
+    first = measure(model)
+    model.save(tmp_path / "model")
+    assert measure(PEARLPlus.load(tmp_path / "model")) == first
+    calibration, optimality = first["calibration"], first["prior_optimality"]
+    assert (
+        calibration["critic"] == "prior critic Q~(s, a) (z-free)" and calibration["n_tasks"] == 4
+    )  # all 4 training tasks (at most 8)
+    assert {"bias", "relative_error", "rank_corr"} <= set(calibration)
+    assert calibration["relative_error"] >= 0.0 and -1.0 <= calibration["rank_corr"] <= 1.0
+    for part in ("train", "test"):
+        gap, mine, bar = (optimality[part][key] for key in ("gap", "model", "bar"))
+        assert gap["return"] == pytest.approx(mine["return"] - bar["return"])
+        assert gap["violation"] == pytest.approx(mine["violation"] - bar["violation"])
+        assert bar["violation"] == 0.0 and -30.0 < bar["return"] < -20.0 and bar["n"] == 6
+    assert optimality["test"]["model"]["return"] == pytest.approx(test_k0["return_mean"])
+
+
+def test_the_experiments_share_their_reference_runs() -> None:
+    runs = plan_runs(PRIOR_CRITIC, "smoke", [0], ["safe-point"], ["alpha-0", "alpha-0.1-zfree", "alpha-0.1-priordata"])
+    assert [(run.experiment, run.variant) for run in runs] == [
+        ("safe-point", "alpha-0"),
+        ("prior-critic", "alpha-0.1-zfree"),
+        ("safe-point", "alpha-0.1-priordata"),
+    ]
+    assert design_variant("priordata", 0.1) == EXPERIMENTS["safe-point"].variant("alpha-0.1-priordata")
+    assert set(DESIGNS) >= {"twin", "priordata", "twin-priordata", "zfree", "maintarget", "ensemble5", "cql5"}
+    # A shared variant declared differently from its owner is refused.
+    changed = dataclasses.replace(PRIOR_CRITIC.variant("alpha-0.1"), overrides={"prior_coef": 0.2})
+    wrong = Experiment(
+        **{
+            **{f.name: getattr(PRIOR_CRITIC, f.name) for f in dataclasses.fields(Experiment)},
+            "variants": tuple(changed if v.name == "alpha-0.1" else v for v in PRIOR_CRITIC.variants),
+        }
+    )
+    with pytest.raises(ValueError, match="shared variant 'alpha-0.1' is declared differently in safe-point"):
+        check_shared(wrong, EXPERIMENTS)
