@@ -31,6 +31,7 @@ import numpy as np
 from stable_baselines3.common.save_util import load_from_zip_file
 
 import sb3_pearl  # noqa: F401  (registers the envs)
+from sb3_pearl.common.checks import non_negative_int, positive_int
 from sb3_pearl.common.diagnostics import (
     DEFAULT_N_GRAD_BATCHES,
     DEFAULT_N_POSTERIOR_SAMPLES,
@@ -158,17 +159,19 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("path", help="run folder (result.json + model.zip, or rl-zoo logs/<algo>/<EnvId>_<n>/) or a model zip")
     p.add_argument("--env-id", default=None, help="env id (default: from the run folder)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the diagnostics' draws and resets")
-    p.add_argument("--n-tasks", type=int, default=DEFAULT_N_TASKS, help="training / held-out tasks used")
-    p.add_argument("--n-z0", type=int, default=DEFAULT_N_Z0, help="prior draws rolled out per task")
-    p.add_argument("--n-posterior-samples", type=int, default=DEFAULT_N_POSTERIOR_SAMPLES, help="per training task")
-    p.add_argument("--n-grad-batches", type=int, default=DEFAULT_N_GRAD_BATCHES, help="meta-batches of the gradient conflict")
-    p.add_argument("--max-steps", type=int, default=None, help="cap on trajectory length")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the diagnostics' draws and resets")
+    p.add_argument("--n-tasks", type=positive_int, default=DEFAULT_N_TASKS, help="training / held-out tasks used")
+    p.add_argument("--n-z0", type=positive_int, default=DEFAULT_N_Z0, help="prior draws rolled out per task")
+    p.add_argument("--n-posterior-samples", type=positive_int, default=DEFAULT_N_POSTERIOR_SAMPLES, help="per training task")
+    p.add_argument(
+        "--n-grad-batches", type=positive_int, default=DEFAULT_N_GRAD_BATCHES, help="meta-batches of the gradient conflict"
+    )
+    p.add_argument("--max-steps", type=positive_int, default=None, help="cap on trajectory length")
     p.add_argument("--device", default="cpu", help="torch device")
     p.add_argument("--json", action="store_true", help="print JSON instead of the table")
     p.add_argument("--paths", default=None, metavar="PNG", help="also draw the k = 0 paths (point families) to this PNG")
-    p.add_argument("--paths-tasks", type=int, default=4, help="held-out tasks drawn by --paths (one panel each)")
-    p.add_argument("--paths-z0", type=int, default=10, help="prior draws per task drawn by --paths")
+    p.add_argument("--paths-tasks", type=positive_int, default=4, help="held-out tasks drawn by --paths (one panel each)")
+    p.add_argument("--paths-z0", type=positive_int, default=10, help="prior draws per task drawn by --paths")
     return p
 
 

@@ -142,3 +142,25 @@ __all__ = [
     "is_integer",
     "is_real",
 ]
+
+
+def positive_int(text: str) -> int:
+    """argparse ``type``: an integer >= 1 (the parser's one-line error names the flag otherwise)."""
+    return _bounded_int(text, 1)
+
+
+def non_negative_int(text: str) -> int:
+    """argparse ``type``: an integer >= 0 (seeds)."""
+    return _bounded_int(text, 0)
+
+
+def _bounded_int(text: str, low: int) -> int:
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}") from None
+    if value < low:
+        raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {value}")
+    return value

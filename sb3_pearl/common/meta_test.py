@@ -311,6 +311,7 @@ def meta_test(
     crn_seed: int | None = None,
     progress_bar: bool = False,
     description: str = "Meta-test",
+    n_prior_trajectories: int = 1,
 ) -> MetaTestResult:
     """
     The meta-test protocol (module docstring) on ``tasks``.
@@ -337,9 +338,15 @@ def meta_test(
     :param progress_bar: show a progress bar over the trajectories, with the ETA
         (:class:`~sb3_pearl.common.progress.ProgressBar`)
     :param description: the bar's text (e.g. what Ctrl-C does)
+    :param n_prior_trajectories: trajectories rolled out before the first ``adapt()`` (1, the default: only k = 0
+        acts with the prior; the PEARL reference's ``num_exp_traj_eval``: its first trajectories each act with a fresh
+        z from the prior (``resample_prior()`` where the model has it), the posterior is inferred from all of them
+        before the next one)
     :return: rows, summary, traces and the settings
     """
     check_adaptive(model)
+    if n_prior_trajectories < 1:
+        raise ValueError(f"meta_test: n_prior_trajectories must be >= 1, got {n_prior_trajectories}")
     if n_adapt < 0 or n_repeats < 1:
         raise ValueError(f"meta_test: n_adapt must be >= 0 and n_repeats >= 1, got {n_adapt}, {n_repeats}")
     if len(tasks) == 0:
@@ -363,8 +370,10 @@ def meta_test(
                     seed_global_rngs(crn_seed, task_index, repeat)
                 model.reset_adaptation()
                 for k in range(n_adapt + 1):
-                    if k > 0:
+                    if k >= n_prior_trajectories:
                         model.adapt()  # posterior from trajectories 0..k-1
+                    elif k > 0 and hasattr(model, "resample_prior"):
+                        model.resample_prior()  # another exploration trajectory, with a fresh prior z (PEARL)
                     if on_trajectory_start is not None:
                         on_trajectory_start(task_index, repeat, k)
                     if crn_seed is not None:
@@ -391,6 +400,7 @@ def meta_test(
         TRAJECTORY_INFO_KEYS_ATTR: list(info_keys),
         STEP_TRACE_KEYS_ATTR: list(trace_keys),
         "crn_seed": crn_seed,
+        **({"n_prior_trajectories": n_prior_trajectories} if n_prior_trajectories != 1 else {}),
     }
     summary = summarize(rows, extra_keys=info_keys)
     return MetaTestResult(rows=rows, summary=summary, tasks=list(tasks), traces=traces, config=config)

@@ -33,7 +33,14 @@ import yaml
 
 PRESETS_DIR = Path(__file__).resolve().parent / "presets"
 PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
-ENTRY_KEYS = frozenset({"n_timesteps", "n_envs", "policy", "kwargs", "meta_test", "shift_meta_test", "competence_meta_test"})
+ENTRY_KEYS = frozenset(
+    {"n_timesteps", "n_envs", "policy", "kwargs", "meta_test", "shift_meta_test", "competence_meta_test", "curve"}
+)
+# The learning curve on the test tasks (optional; sb3_pearl/reproduce/curve.py): every `every` env steps, the
+# reference's evaluation on `n_tasks` held-out tasks (n_adapt + 1 trajectories each, the first
+# `n_prior_trajectories` with z from the prior) and the k = 0 return and violation rate.
+CURVE_KEYS = frozenset({"every", "n_tasks", "n_adapt", "n_prior_trajectories"})
+CURVE_DEFAULTS = {"n_adapt": 2, "n_prior_trajectories": 1}
 META_TEST_KEYS = frozenset({"n_tasks", "n_repeats", "n_adapt", "deterministic"})
 META_TEST_DEFAULTS: dict[str, Any] = {"n_adapt": 5, "n_repeats": 1, "deterministic": True}
 COMPETENCE_DEFAULTS: dict[str, Any] = {"n_tasks": 10, "n_repeats": 1, "n_adapt": 2, "deterministic": True}
@@ -123,6 +130,7 @@ def validate_entry(entry: Any, algo: str, where: str) -> dict[str, Any]:
         raise ValueError(f"{where} meta_test: n_tasks is required (the test tasks are drawn with the experiment's eval seed)")
     shift = _meta_test(entry.get("shift_meta_test", meta_test), meta_test, f"{where} shift_meta_test")
     competence = _meta_test(entry.get("competence_meta_test", {}), COMPETENCE_DEFAULTS, f"{where} competence_meta_test")
+    extra = {"curve": _curve(entry["curve"], f"{where} curve")} if "curve" in entry else {}
     return {
         "n_timesteps": int(n_timesteps),
         "n_envs": n_envs,
@@ -131,7 +139,23 @@ def validate_entry(entry: Any, algo: str, where: str) -> dict[str, Any]:
         "meta_test": meta_test,
         "shift_meta_test": shift,
         "competence_meta_test": competence,
+        **extra,
     }
+
+
+def _curve(settings: Any, where: str) -> dict[str, Any]:
+    if not isinstance(settings, dict) or not {"every", "n_tasks"} <= set(settings):
+        raise ValueError(f"{where}: a mapping with `every` and `n_tasks` (and {sorted(CURVE_KEYS)}), got {settings!r}")
+    unknown = sorted(set(settings) - CURVE_KEYS)
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; allowed {sorted(CURVE_KEYS)}")
+    merged = {**CURVE_DEFAULTS, **settings}
+    for key, low in (("every", 1), ("n_tasks", 1), ("n_adapt", 0), ("n_prior_trajectories", 1)):
+        if not isinstance(merged[key], int) or isinstance(merged[key], bool) or merged[key] < low:
+            raise ValueError(f"{where}: {key} must be an integer >= {low}, got {merged[key]!r}")
+    if merged["n_prior_trajectories"] > merged["n_adapt"] + 1:
+        raise ValueError(f"{where}: n_prior_trajectories must be at most n_adapt + 1 (the trajectories per task)")
+    return merged
 
 
 def _meta_test(settings: Any, defaults: dict[str, Any], where: str) -> dict[str, Any]:

@@ -1,8 +1,9 @@
 """The task families of the reproduction experiments, with their shifted test distributions and competence criteria.
 
 Names (CLI and results layout): ``safe-point`` (SafePointGoalMeta-v0, the fast family),
-``walker2d-vel`` (Walker2dVelMeta-v0), ``ant3d-vel`` (AntVelMeta-v0) and ``highway-merge``
-(HighwayMergeMeta-v0).
+``walker2d-vel`` (Walker2dVelMeta-v0), ``ant3d-vel`` (AntVelMeta-v0), ``highway-merge``
+(HighwayMergeMeta-v0) and ``cheetah-vel`` (HalfCheetahVelMeta-v0, PEARL's own family: the ``pearl-reference``
+experiment).
 
 Competence criteria (docs/reproduce.md): PEARL's *posterior* policy (trajectories k >= 1) on
 *training* tasks must meet every criterion of its family before a comparison on that family is
@@ -115,7 +116,24 @@ HIGHWAY_MERGE = Family(
     return_margin=3.0,
 )
 
-FAMILIES: dict[str, Family] = {f.name: f for f in (SAFE_POINT, WALKER2D_VEL, ANT3D_VEL, HIGHWAY_MERGE)}
+HALF_CHEETAH_VEL = Family(
+    name="cheetah-vel",
+    env_id="HalfCheetahVelMeta-v0",
+    title="HalfCheetah-Vel (PEARL's cheetah-vel)",
+    competence=(
+        Criterion(
+            description="mean absolute error of the forward velocity per step of the posterior trajectories [m/s]",
+            kind="trace_mean",
+            key="reward_forward",
+            scale=-1.0,
+            threshold=0.3,
+            better="lower",
+        ),
+    ),
+    return_margin=10.0,
+)
+
+FAMILIES: dict[str, Family] = {f.name: f for f in (SAFE_POINT, WALKER2D_VEL, ANT3D_VEL, HIGHWAY_MERGE, HALF_CHEETAH_VEL)}
 
 
 def get_family(name: str) -> Family:

@@ -55,6 +55,10 @@ class PosteriorAdaptationMixin:
         self._adapt_context = []
         self.policy.current_z = th.randn(self.latent_dim, device=self.device)
 
+    def resample_prior(self) -> None:
+        """A fresh z from the prior, the context kept (the reference's exploration trajectories, each with its own z)."""
+        self.policy.current_z = th.randn(self.latent_dim, device=self.device)
+
     def observe(self, obs: np.ndarray, action: Any, reward: float, next_obs: np.ndarray, done: bool) -> None:
         """
         Record one transition of the new task (env-space action, as returned by :meth:`predict`).

@@ -128,11 +128,8 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     policy: PEARLPolicy
     replay_buffer: MetaReplayBuffer  # type: ignore[assignment]
     # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before set-up).
-    prior_coef: float = 0.0
-    prior_critic_mode: str = "none"
-    prior_data: str = "all"
-    prior_target: str = "prior"
-    prior_conservative_weight: float = 0.0
+    prior_coef, prior_critic_mode, prior_data = 0.0, "none", "all"
+    prior_target, prior_conservative_weight = "prior", 0.0  # the prior-critic designs (PEARLPlus, docs/pearl.md)
     # Called after every gradient step of train() while set (the progress callback sets it during learn()); never saved.
     gradient_step_callback: Callable[[], None] | None = None
 
@@ -225,7 +222,6 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
         )
         # Saved with the model: PEARL keeps the class defaults (no prior term), PEARLPlus set its own.
         self.prior_coef, self.prior_critic_mode, self.prior_data = self.prior_coef, self.prior_critic_mode, self.prior_data
-        self.prior_target, self.prior_conservative_weight = self.prior_target, self.prior_conservative_weight
         self.kl_weight = kl_weight
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy

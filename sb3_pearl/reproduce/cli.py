@@ -17,12 +17,16 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from sb3_pearl.common.checks import positive_int
 from sb3_pearl.experiments import EXPERIMENTS, get_experiment
 from sb3_pearl.experiments.budgets import PRESETS, load_budget
 from sb3_pearl.reproduce.layout import parse_seeds
 
 BACKENDS = ("local", "ray")
 RAY_OPTIONS = ("address", "cpus_per_run", "gpus_per_run", "retries", "storage_path")
+
+
+CONFIRM_RUNS = 200  # a larger plan needs --yes (a typo in --seeds must not start days of runs)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -43,13 +47,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 or 0-3,7 (default: the experiment's)")
     run.add_argument(
         "--jobs",
-        type=int,
+        type=positive_int,
         default=None,
         help="runs at a time, one process and one torch thread each (default: 1 locally, what the Ray cluster fits with ray)",
     )
     run.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
     run.add_argument("--force", action="store_true", help="rerun runs that already have a result.json")
     run.add_argument("--dry-run", action="store_true", help="print the planned runs and their budgets, run nothing")
+    run.add_argument("--yes", action="store_true", help=f"confirm a plan of more than {CONFIRM_RUNS} runs")
     run.add_argument(
         "--backend",
         choices=BACKENDS,
@@ -77,6 +82,14 @@ def build_parser() -> argparse.ArgumentParser:
     report = sub.add_parser("report", help="rebuild the tables and figures of the results page from the results")
     report.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
     report.add_argument("--out", default="docs/results.md", help="markdown file; its text outside the markers is kept")
+
+    status = sub.add_parser("status", help="finished, resumable and missing runs of an experiment, and the CPU time left")
+    status.add_argument("experiment", choices=sorted(EXPERIMENTS), help="the experiment")
+    status.add_argument("--family", nargs="+", default=None, help="families of the experiment (default: all)")
+    status.add_argument("--variants", nargs="+", default=None, help="variants of the experiment (default: all)")
+    status.add_argument("--budget", default=None, choices=PRESETS, help="budget preset (default: the experiment's)")
+    status.add_argument("--seeds", default=None, help="model seeds, as for run (default: the experiment's)")
+    status.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
 
     measure = sub.add_parser(
         "measure", help="fill in the prior-critic measures of runs written before they existed (from model.zip)"
@@ -114,8 +127,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.backend != "ray" and given:
         options = ", ".join("--" + name.replace("_", "-") for name in given)
         raise ValueError(f"{options} only apply to --backend ray")
+    planned = plan_runs(experiment, budget, seeds, args.family, args.variants)  # every name and override checked
+    if len(planned) > CONFIRM_RUNS and not args.yes and not args.dry_run:
+        raise ValueError(f"{len(planned)} runs planned (more than {CONFIRM_RUNS}): check --seeds, then add --yes to confirm")
     if args.dry_run:
-        for key in plan_runs(experiment, budget, seeds, args.family, args.variants):
+        for key in planned:
             variant = experiment.variant(key.variant)
             entry = load_budget(budget, experiment.family(key.family).budget_name, variant.algo)
             print(f"{key.label()}: {variant.algo}, {entry['n_timesteps']} steps, meta-test {entry['meta_test']}")
@@ -152,6 +168,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     :return: the exit status
     """
     args = build_parser().parse_args(argv)
+    if args.command == "run-one":
+        return _run_one(args)
     try:
         if args.command == "list":
             _list()
@@ -162,6 +180,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             from sb3_pearl.reproduce.report import write_report
 
             print(f"wrote {write_report(args.results_dir, args.out)}")
+            return 0
+        if args.command == "status":
+            from sb3_pearl.reproduce.status import format_status, run_status
+
+            experiment = get_experiment(args.experiment)
+            seeds = parse_seeds(args.seeds) if args.seeds is not None else list(experiment.seeds)
+            budget = args.budget or experiment.budget
+            print(format_status(run_status(experiment, budget, seeds, args.results_dir, args.family, args.variants)))
             return 0
         if args.command == "measure":
             import torch as th
@@ -177,7 +203,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    from sb3_pearl.reproduce.runner import run_one  # run-one: errors keep their traceback (in run.log)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    raise AssertionError(f"unhandled command {args.command!r}")
 
-    run_one(args.experiment, args.family, args.variant, args.seed, args.budget, args.results_dir)
+
+def _run_one(args: argparse.Namespace) -> int:
+    """The child of ``run``: owns its run folder (a lock) for as long as it trains; errors keep their traceback (run.log)."""
+    import signal
+
+    from sb3_pearl.reproduce.layout import RunKey, run_dir
+    from sb3_pearl.reproduce.ownership import LOCKED_EXIT, RunLockedError, run_lock
+    from sb3_pearl.reproduce.runner import run_one
+
+    def stop(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)  # the parent's stop: like Ctrl-C, the checkpoint on disk is kept
+    folder = run_dir(args.results_dir, RunKey(args.experiment, args.family, args.variant, args.seed))
+    try:
+        with run_lock(folder):
+            run_one(args.experiment, args.family, args.variant, args.seed, args.budget, args.results_dir)
+    except RunLockedError as error:
+        print(f"run-one: {error}: nothing done", file=sys.stderr)
+        return LOCKED_EXIT
+    except KeyboardInterrupt:
+        print("run-one: interrupted; the same `reproduce run` command resumes this run from its checkpoint", file=sys.stderr)
+        return 130
     return 0

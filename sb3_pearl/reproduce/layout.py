@@ -18,10 +18,11 @@ import os
 import platform
 import re
 import subprocess
-import tempfile
 from importlib import metadata
 from pathlib import Path
 from typing import Any, NamedTuple
+
+from sb3_pearl.common.atomic import atomic_write
 
 RESULT_FILE = "result.json"
 MODEL_FILE = "model.zip"
@@ -74,29 +75,46 @@ def find_results(results_dir: str | os.PathLike[str]) -> list[Path]:
 
 def write_json_atomic(path: str | os.PathLike[str], data: Any) -> None:
     """
-    Write JSON so that the file either does not exist or is complete (temporary file, then ``os.replace``).
+    Write JSON so that the file either does not exist or is complete (temporary file, fsync, then ``os.replace``),
+    with the permissions of any other new file (0644 under the usual umask, not ``mkstemp``'s 0600).
 
     :param path: destination
     :param data: JSON-serialisable data (nan / inf are written as null by the caller's conversion)
     """
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as file:
-            json.dump(data, file, indent=1, allow_nan=False)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "w") as file:
+        json.dump(data, file, indent=1, allow_nan=False)
+
+
+SUMMARY_KEYS = ("k", "n", "return_mean", "violation_rate")
 
 
 def read_result(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a ``result.json``."""
-    with open(path) as file:
-        return json.load(file)
+    """
+    Read a ``result.json`` and check that it is complete: a clear error naming the file and what is missing otherwise.
+
+    :param path: the file
+    :return: the result
+    """
+    try:
+        with open(path) as file:
+            result = json.load(file)
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not valid JSON ({error}): truncated or edited; delete it to rerun the run") from None
+    if not isinstance(result, dict):
+        raise ValueError(f"{path} does not hold a result (a JSON object); delete it to rerun the run")
+    missing = [key for key in ("experiment", "family", "variant", "seed", "budget_preset", "meta_test") if key not in result]
+    if missing:
+        raise ValueError(f"{path} lacks the key(s) {missing}: it is not a complete result; delete it to rerun the run")
+    summary = (result["meta_test"] or {}).get("summary") if isinstance(result["meta_test"], dict) else None
+    if not summary or not all(isinstance(e, dict) and all(k in e for k in SUMMARY_KEYS) for e in summary):
+        raise ValueError(
+            f"{path} lacks its meta_test summary (entries with {list(SUMMARY_KEYS)}): it is not a complete result; "
+            "delete it to rerun the run"
+        )
+    return result
+
+
+MAX_SEEDS = 1000  # a typo such as 0-120000 is refused instead of planning runs for ever
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -115,6 +133,8 @@ def parse_seeds(text: str) -> list[int]:
         first, last = int(match.group(1)), int(match.group(2) or match.group(1))
         if last < first:
             raise ValueError(f"--seeds: empty range {part!r}")
+        if last - first + 1 + len(seeds) > MAX_SEEDS:
+            raise ValueError(f"--seeds {text!r} names more than {MAX_SEEDS} seeds: give a smaller range")
         seeds.update(range(first, last + 1))
     return sorted(seeds)
 

@@ -500,6 +500,11 @@ def write_report(results_dir: str | os.PathLike[str], out: str | os.PathLike[str
     :param out: the markdown file (created if missing; its text outside the markers is kept)
     :return: the path written
     """
+    root = Path(results_dir)
+    if not root.is_dir():
+        raise ValueError(f"results folder {root} does not exist or is not a folder: nothing reported, {out} left as it is")
+    if not find_results(root):
+        raise ValueError(f"results folder {root} holds no result.json: nothing reported, {out} left as it is")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     figures_dir = out.parent / "figures"

@@ -17,13 +17,14 @@ from __future__ import annotations
 import copy
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import configure
 
 import sb3_pearl  # noqa: F401  (registers the task families)
 from sb3_pearl.common.diagnostics import compute_diagnostics
@@ -31,9 +32,18 @@ from sb3_pearl.common.meta_test import MetaTestResult, json_value, meta_test
 from sb3_pearl.experiments import get_experiment
 from sb3_pearl.experiments.budgets import algo_class, check_constructor_kwargs, load_budget, model_kwargs
 from sb3_pearl.experiments.spec import Experiment, Family, Variant
+from sb3_pearl.reproduce.checkpoint import (
+    DEFAULT_INTERVAL_S,
+    Interrupt,
+    PeriodicCheckpoint,
+    RunCheckpoint,
+    csv_logger_continuing,
+)
 from sb3_pearl.reproduce.competence import evaluate_competence
+from sb3_pearl.reproduce.curve import CURVE_FILE, LearningCurve
 from sb3_pearl.reproduce.layout import (
     MODEL_FILE,
+    PROGRESS_FILE,
     RESULT_FILE,
     RunKey,
     cpu_info,
@@ -121,7 +131,13 @@ def _held_out_tasks(env: gym.Env, n_tasks: int, eval_seed: int, train_tasks: lis
 
 
 def _protocol(
-    model: Any, env: gym.Env, tasks: list[Any], settings: dict[str, Any], eval_seed: int, trace_keys: tuple[str, ...] = ()
+    model: Any,
+    env: gym.Env,
+    tasks: list[Any],
+    settings: dict[str, Any],
+    eval_seed: int,
+    trace_keys: tuple[str, ...] = (),
+    on_trajectory_start: Callable[[int, int, int], None] | None = None,
 ) -> MetaTestResult:
     """The meta-test of one run with its preset settings, seeded by the experiment's eval seed (common random numbers)."""
     return meta_test(
@@ -134,6 +150,7 @@ def _protocol(
         seed=eval_seed,
         trace_keys=trace_keys,
         crn_seed=eval_seed,
+        on_trajectory_start=on_trajectory_start,
     )
 
 
@@ -145,17 +162,25 @@ def run_one(
     budget_preset: str,
     results_dir: str | Path,
     verbose: int = 1,
+    checkpoint_interval_s: float = DEFAULT_INTERVAL_S,
+    interrupt: Interrupt | None = None,
 ) -> dict[str, Any]:
     """
     Train, save and evaluate one (variant, seed) of an experiment; write its result.json last and atomically.
 
-    :param experiment_name: ``table1``, ``table2``, ``table3`` or ``safe-point``
+    An interrupted run resumes from its checkpoint (:mod:`sb3_pearl.reproduce.checkpoint`): training from the last
+    iteration start saved (every ``checkpoint_interval_s`` seconds), evaluation from the first phase not done.
+
+    :param experiment_name: ``table1``, ``table2``, ``table3``, ``safe-point``, ...
     :param family_name: a family of the experiment
     :param variant_name: a variant of the experiment
     :param seed: the model seed
     :param budget_preset: ``smoke``, ``cpu`` or ``paper``
     :param results_dir: root of the results layout
     :param verbose: print progress
+    :param checkpoint_interval_s: seconds of training between checkpoints (0: at every iteration start)
+    :param interrupt: test hook simulating a kill (:class:`~sb3_pearl.reproduce.checkpoint.PeriodicCheckpoint`;
+        also called as ``interrupt("meta_test", n)`` before every trajectory of the held-out meta-test)
     :return: the result written
     """
     th.set_num_threads(1)
@@ -170,32 +195,97 @@ def run_one(
     kwargs = run_kwargs(budget, variant, f"{key.label()} (preset {budget_preset})")
     env_kwargs = dict(family.env_kwargs)
     log = print if verbose else (lambda *args, **kw: None)
-    started = time.time()
     cpu_start = cpu_info()
+    checkpoint = RunCheckpoint(folder)
+    state = checkpoint.read_state()
+    identity = json_value({"budget_preset": budget_preset, "model_kwargs": kwargs, "n_timesteps": budget["n_timesteps"]})
+    if state is not None and state.get("identity") != identity:
+        raise ValueError(
+            f"{checkpoint.folder} was written by a run with other settings ({state.get('identity')}): "
+            "delete it, or rerun with --force, to restart the run from zero"
+        )
+    spent = dict(state["spent"]) if state is not None else {"cpu_s": 0.0, "wall_s": 0.0}
+    phases: dict[str, Any] = dict(state["phases"]) if state is not None else {}
+    segment_cpu, segment_wall = time.process_time(), time.time()
+
+    def save_state(phase: str, model: Any) -> None:
+        checkpoint.write_state(
+            {
+                "identity": identity,
+                "phase": phase,
+                "num_timesteps": int(model.num_timesteps),
+                "spent": {
+                    "cpu_s": spent["cpu_s"] + time.process_time() - segment_cpu,
+                    "wall_s": spent["wall_s"] + time.time() - segment_wall,
+                },
+                "phases": phases,
+            }
+        )
 
     env = make_vec_env(family.env_id, n_envs=budget["n_envs"], seed=seed, env_kwargs=env_kwargs)
-    model = algo_class(variant.algo)(budget["policy"], env, seed=seed, verbose=0, device="auto", **model_kwargs(kwargs))
-    model.set_logger(configure(str(folder), ["csv"]))
-    log(f"[{key.label()}] learn {budget['n_timesteps']} steps", flush=True)
-    start = time.time()
-    model.learn(budget["n_timesteps"])
-    train_s = time.time() - start
-    model.save(folder / MODEL_FILE)
+    algo = algo_class(variant.algo)
+    progress = folder / PROGRESS_FILE
+    if state is None:
+        model = algo(budget["policy"], env, seed=seed, verbose=0, device="auto", **model_kwargs(kwargs))
+        model.set_logger(csv_logger_continuing(folder, None))
+    else:
+        model = checkpoint.load_model(algo, env)
+        model.set_logger(csv_logger_continuing(folder, checkpoint.progress_snapshot()))
+        log(f"[{key.label()}] resumed at {model.num_timesteps} steps ({state['phase']}), {sorted(phases)} done", flush=True)
+    if state is None or state["phase"] == "train":
+        remaining = budget["n_timesteps"] - model.num_timesteps
+        log(f"[{key.label()}] learn {remaining} of {budget['n_timesteps']} steps", flush=True)
+        start = time.time()
+        on_save = lambda: save_state("train", model)  # noqa: E731
+        callbacks: list[BaseCallback] = [PeriodicCheckpoint(checkpoint, progress, checkpoint_interval_s, on_save, interrupt)]
+        curve_env = None
+        if "curve" in budget:  # the learning curve on the held-out tasks (docs/reproduce.md, "Learning curves")
+            curve_env = gym.make(family.env_id, **env_kwargs)
+            curve_tasks = _held_out_tasks(
+                curve_env, budget["meta_test"]["n_tasks"], experiment.eval_seed, list(model.train_tasks), key.label()
+            )
+            resume_at = int(state["num_timesteps"]) if state is not None else 0
+            callbacks.append(
+                LearningCurve(folder / CURVE_FILE, curve_env, curve_tasks, budget["curve"], experiment.eval_seed, resume_at)
+            )
+        if remaining > 0:
+            model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=state is None)
+        if curve_env is not None:
+            curve_env.close()
+        phases["train_s"] = phases.get("train_s", 0.0) + time.time() - start
+        model.save(folder / MODEL_FILE)
+        checkpoint.save_model(model, progress)  # with the replay buffer the diagnostics read
+        save_state("evaluate", model)
     model.logger.close()
     env.close()
     train_tasks = list(getattr(model, "train_tasks", []) or [])
 
+    def phase(name: str, compute: Callable[[], Any]) -> Any:
+        """An evaluation phase: done once, its JSON record kept in the checkpoint until result.json is written."""
+        if name not in phases:
+            start = time.time()
+            phases[name] = json_value(compute())
+            phases[f"{name}_s"] = time.time() - start
+            save_state("evaluate", model)
+        return phases[name]
+
     settings = budget["meta_test"]
     eval_env = gym.make(family.env_id, **env_kwargs)
     tasks = _held_out_tasks(eval_env, settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
-    log(f"[{key.label()}] meta-test {settings}", flush=True)
-    start = time.time()
-    held_out = _protocol(model, eval_env, tasks, settings, experiment.eval_seed)
-    meta_test_s = time.time() - start
-    timings = {"train": train_s, "meta_test": meta_test_s}
+    trajectories = iter(range(1, 1 << 62))
+    on_trajectory = None if interrupt is None else (lambda *_: interrupt("meta_test", next(trajectories)))
 
-    shift = None
-    if family.shift_env_kwargs is not None:
+    def held_out_meta_test() -> dict[str, Any]:
+        log(f"[{key.label()}] meta-test {settings}", flush=True)
+        start = time.time()
+        result = _protocol(model, eval_env, tasks, settings, experiment.eval_seed, on_trajectory_start=on_trajectory)
+        return _meta_test_record(result, time.time() - start, env_kwargs)
+
+    held_out = phase("meta_test", held_out_meta_test)
+
+    def shifted_meta_test() -> dict[str, Any] | None:
+        if family.shift_env_kwargs is None:
+            return None
         shift_settings = budget["shift_meta_test"]
         shift_kwargs = {**env_kwargs, **dict(family.shift_env_kwargs)}
         shift_env = gym.make(family.env_id, **shift_kwargs)
@@ -203,47 +293,50 @@ def run_one(
         log(f"[{key.label()}] shifted meta-test {shift_settings}", flush=True)
         start = time.time()
         shifted = _protocol(model, shift_env, shift_tasks, shift_settings, experiment.eval_seed)
-        timings["shift"] = time.time() - start
-        shift = _meta_test_record(shifted, timings["shift"], shift_kwargs)
         shift_env.close()
+        return _meta_test_record(shifted, time.time() - start, shift_kwargs)
 
-    competence: dict[str, Any] = {"skipped": "the model has no training tasks"}
-    if train_tasks:
+    shift = phase("shift", shifted_meta_test)
+
+    def competence_check() -> dict[str, Any]:
+        if not train_tasks:
+            return {"skipped": "the model has no training tasks"}
         comp_settings = budget["competence_meta_test"]
-        start = time.time()
         on_train = _protocol(
             model, eval_env, train_tasks[: comp_settings["n_tasks"]], comp_settings, experiment.eval_seed, family.trace_keys()
         )
-        timings["competence"] = time.time() - start
-        competence = {
-            **evaluate_competence(on_train, family.competence),
-            "settings": comp_settings,
-            "summary": on_train.summary,
-        }
+        return {**evaluate_competence(on_train, family.competence), "settings": comp_settings, "summary": on_train.summary}
 
-    start = time.time()
-    try:
-        prior_critic = compute_prior_measures(
-            model, variant.algo, family, env_kwargs, settings, tasks, held_out.summary[0], experiment.eval_seed, seed
-        )
-    except Exception:  # like the diagnostics: a bug here must not throw away a trained run (`reproduce measure` redoes it)
-        prior_critic = {"error": traceback.format_exc()}
-        log(f"[{key.label()}] prior-critic measures failed:\n{prior_critic['error']}", flush=True)
-    timings["prior_measures"] = time.time() - start
+    competence = phase("competence", competence_check)
 
-    diagnostics: dict[str, Any]
-    if variant.algo in DIAGNOSED_ALGOS:
-        start = time.time()
+    def prior_measures() -> dict[str, Any]:
         try:
-            diagnostics = compute_diagnostics(model, eval_env, seed=seed)
+            return compute_prior_measures(
+                model, variant.algo, family, env_kwargs, settings, tasks, held_out["summary"][0], experiment.eval_seed, seed
+            )
+        except Exception:  # like the diagnostics: a bug here must not throw away a trained run (`reproduce measure`)
+            log(f"[{key.label()}] prior-critic measures failed:\n{traceback.format_exc()}", flush=True)
+            return {"error": traceback.format_exc()}
+
+    prior_critic = phase("prior_measures", prior_measures)
+
+    def diagnose() -> dict[str, Any]:
+        if variant.algo not in DIAGNOSED_ALGOS:
+            return {"skipped": f"diagnostics apply to PEARL / PEARL+, not {variant.algo}"}
+        try:
+            return compute_diagnostics(model, eval_env, seed=seed)
         except Exception:  # a diagnostics bug must not throw away a trained and meta-tested run
-            diagnostics = {"error": traceback.format_exc()}
-            log(f"[{key.label()}] diagnostics failed:\n{diagnostics['error']}", flush=True)
-        timings["diagnostics"] = time.time() - start
-    else:
-        diagnostics = {"skipped": f"diagnostics apply to PEARL / PEARL+, not {variant.algo}"}
+            log(f"[{key.label()}] diagnostics failed:\n{traceback.format_exc()}", flush=True)
+            return {"error": traceback.format_exc()}
+
+    diagnostics = phase("diagnostics", diagnose)
     eval_env.close()
-    timings["total"] = time.time() - started
+    timings = {"train": phases["train_s"]}
+    for name in ("meta_test", "shift", "competence", "prior_measures", "diagnostics"):
+        if name != "shift" or shift is not None:
+            timings[name] = phases[f"{name}_s"]
+    total_cpu = spent["cpu_s"] + time.process_time() - segment_cpu
+    timings["total"] = spent["wall_s"] + time.time() - segment_wall
 
     result = json_value(
         {
@@ -257,11 +350,11 @@ def run_one(
             "model_kwargs": kwargs,
             "eval_seed": experiment.eval_seed,
             "versions": package_versions(),
-            "cpu": {**cpu_start, "load_average_end": cpu_info()["load_average"]},
+            "cpu": {**cpu_start, "load_average_end": cpu_info()["load_average"], "cpu_time_s": total_cpu},
             "wall_time_s": timings,
             "num_timesteps": int(model.num_timesteps),
             "device": str(model.device),
-            "meta_test": _meta_test_record(held_out, meta_test_s, env_kwargs),
+            "meta_test": held_out,
             "shift": shift,
             "competence": competence,
             "prior_critic": prior_critic,
@@ -269,5 +362,6 @@ def run_one(
         }
     )
     write_json_atomic(folder / RESULT_FILE, result)
+    checkpoint.remove()
     log(f"[{key.label()}] done in {timings['total']:.0f} s: {folder / RESULT_FILE}", flush=True)
     return result

@@ -17,17 +17,21 @@ from __future__ import annotations
 import importlib
 import math
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from types import ModuleType
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.spec import Experiment
+from sb3_pearl.reproduce.checkpoint import RunCheckpoint
 from sb3_pearl.reproduce.layout import LOG_FILE, RESULT_FILE, RunKey, run_dir
+from sb3_pearl.reproduce.ownership import LOCKED_EXIT, die_with_parent, lock_holder
 from sb3_pearl.reproduce.runner import existing_result, run_kwargs
 
 #: environment of every run, whatever the backend: one thread per run (torch also gets ``set_num_threads(1)``)
@@ -81,8 +85,10 @@ def plan_runs(
     :param variants: variant names (None: all)
     :return: the runs, family by family, variant by variant, seed by seed
     """
-    chosen_families = [experiment.family(name) for name in families] if families else list(experiment.families)
-    chosen_variants = [experiment.variant(name) for name in variants] if variants else list(experiment.variants)
+    # a family or variant named twice is one run, not two (dict.fromkeys keeps the first occurrence's order)
+    chosen_families = [experiment.family(n) for n in dict.fromkeys(families)] if families else list(experiment.families)
+    chosen_variants = [experiment.variant(n) for n in dict.fromkeys(variants)] if variants else list(experiment.variants)
+    seeds = list(dict.fromkeys(seeds))
     if not seeds:
         raise ValueError("no seeds to run")
     bad = [s for s in seeds if s == experiment.eval_seed or s < 0]
@@ -231,31 +237,93 @@ def run_experiment(
     running: dict[RunKey, tuple[subprocess.Popen[bytes], float, BinaryIO]] = {}
     progress = Progress(total, jobs, echo)
     queue = list(pending)
-    while queue or running:
-        while queue and len(running) < jobs:
-            key = queue.pop(0)
-            folder = run_dir(results_dir, key)
-            folder.mkdir(parents=True, exist_ok=True)
-            if force and (folder / RESULT_FILE).exists():
-                (folder / RESULT_FILE).unlink()  # the folder is incomplete until the rerun writes it again
-            log = open(folder / LOG_FILE, "wb")  # noqa: SIM115  (closed when the child ends)
-            process = subprocess.Popen(
-                child_command(key, budget_preset, results_dir), stdout=log, stderr=subprocess.STDOUT, env=env
-            )
-            running[key] = (process, time.time(), log)
-        finished = [key for key, (process, _, _) in running.items() if process.poll() is not None]
-        if not finished:
-            time.sleep(poll_s)
-            continue
-        for key in finished:
-            process, start, log_file = running.pop(key)
-            log_file.close()
-            elapsed = time.time() - start
-            folder = run_dir(results_dir, key)
-            ok = process.returncode == 0 and (folder / RESULT_FILE).is_file()
-            (summary.done if ok else summary.failed).append(key)
-            progress.line(key, ok, elapsed, f"FAILED (exit {process.returncode}, see {folder / LOG_FILE})")
+    forced: set[RunKey] = set()
+    previous = _raise_on_sigterm()
+    try:
+        while queue or running:
+            while queue and len(running) < jobs:
+                key = queue.pop(0)
+                folder = run_dir(results_dir, key)
+                folder.mkdir(parents=True, exist_ok=True)
+                owner = lock_holder(folder)
+                if owner is not None:  # another command trains it: share the work, never train a run twice
+                    summary.skipped.append(key)
+                    progress.total -= 1
+                    echo(f"skip {key.label()}: being run by another process (pid {owner})")
+                    continue
+                if force and key not in forced:
+                    forced.add(key)
+                    (folder / RESULT_FILE).unlink(missing_ok=True)  # the folder is incomplete until the rerun writes it
+                    RunCheckpoint(folder).remove()  # --force: from zero
+                elif not force and (folder / RESULT_FILE).is_file():  # finished meanwhile (by another command)
+                    summary.skipped.append(key)
+                    progress.total -= 1
+                    echo(f"skip {key.label()}: {folder / RESULT_FILE} exists (--force reruns it)")
+                    continue
+                log = open(folder / LOG_FILE, "ab")  # noqa: SIM115  (closed when the child ends; appended: resumed runs)
+                process = subprocess.Popen(
+                    child_command(key, budget_preset, results_dir),
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    env=env,
+                    preexec_fn=die_with_parent,
+                )
+                running[key] = (process, time.time(), log)
+            finished = [key for key, (process, _, _) in running.items() if process.poll() is not None]
+            if not finished:
+                time.sleep(poll_s)
+                continue
+            for key in finished:
+                process, start, log_file = running.pop(key)
+                log_file.close()
+                elapsed = time.time() - start
+                folder = run_dir(results_dir, key)
+                if process.returncode == LOCKED_EXIT:  # lost the race for the lock: the other owner finishes it
+                    summary.skipped.append(key)
+                    progress.total -= 1
+                    echo(f"skip {key.label()}: being run by another process")
+                    continue
+                ok = process.returncode == 0 and (folder / RESULT_FILE).is_file()
+                (summary.done if ok else summary.failed).append(key)
+                progress.line(key, ok, elapsed, f"FAILED (exit {process.returncode}, see {folder / LOG_FILE})")
+    except KeyboardInterrupt:  # Ctrl-C (SIGINT) or SIGTERM: stop the children cleanly, say what is left
+        _stop_children(running)
+        summary.interrupted.extend(running)
+        echo(
+            f"interrupted: {len(running)} run(s) stopped ({', '.join(key.label() for key in running) or 'none'}), "
+            f"{len(queue)} not started; run the same command again to complete them (each stopped run resumes from "
+            "its last checkpoint, docs/reproduce.md)"
+        )
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return summary
+
+
+def _raise_on_sigterm() -> Any:
+    """In the main thread: make SIGTERM raise KeyboardInterrupt, as Ctrl-C does; return the previous handler."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, handler)
+
+
+def _stop_children(running: dict[RunKey, tuple[subprocess.Popen[bytes], float, BinaryIO]], grace_s: float = 60.0) -> None:
+    """SIGTERM every child, wait up to ``grace_s`` for all, then SIGKILL the rest."""
+    for process, _, _ in running.values():
+        if process.poll() is None:
+            process.terminate()
+    deadline = time.time() + grace_s
+    for process, _, log in running.values():
+        try:
+            process.wait(timeout=max(deadline - time.time(), 0.1))
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        log.close()
 
 
 __all__ = [

@@ -53,6 +53,7 @@ from sb3_pearl.common.callbacks import (
 )
 from sb3_pearl.common.meta_test import MetaTestResult, get_test_tasks, meta_test
 from sb3_pearl.common.progress import TrainingProgressCallback
+from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams, faster_option
 from sb3_pearl.zoo.registry import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.safe_config import load_run_yaml, parse_dict_string
@@ -176,6 +177,7 @@ class MetaExperimentManager(ExperimentManager):
 
         :param hyperparams: the entry after ``-params`` overrides
         """
+        usage.check_yaml_n_timesteps(hyperparams, f"{self.config} [{self.env_name.gym_id}]")
         algo_class = ALGOS[self.algo]
         accepted = constructor_kwargs(algo_class)
         unknown = sorted(set(hyperparams) - accepted - ZOO_SPECIAL_KEYS)
@@ -502,6 +504,7 @@ def _project_flags(args: list[str]) -> list[str]:
     """
     MetaExperimentManager.resume = False
     MetaExperimentManager.budget = None
+    usage.check_n_timesteps(args)
     if "--resume" in args:
         index = args.index("--resume")
         if index + 1 >= len(args) or not os.path.isfile(args[index + 1]) or not args[index + 1].endswith(".zip"):

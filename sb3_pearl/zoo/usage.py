@@ -95,3 +95,36 @@ class CheckedStoreDict(StoreDict):
 
 
 __all__ = ["EXIT_USAGE", "CheckedStoreDict", "UsageError", "UsageExit", "check_env_id", "exit_on_usage_error", "program_name"]
+
+
+def check_n_timesteps(args: list[str]) -> None:
+    """
+    Refuse ``-n`` / ``--n-timesteps`` of 0 or less at parse time (rl_zoo3 would train the YAML's budget instead).
+
+    :param args: the command line
+    """
+    for index, arg in enumerate(args):
+        name, _, value = arg.partition("=")
+        if name not in ("-n", "--n-timesteps"):
+            continue
+        value = value or (args[index + 1] if index + 1 < len(args) else "")
+        try:
+            steps = int(value)
+        except ValueError:
+            raise UsageError(f"{name} takes a number of env steps, got {value!r}") from None
+        if steps <= 0:
+            raise UsageError(
+                f"{name} must be a positive number of env steps, got {steps} (omit it for the YAML's n_timesteps)"
+            )
+
+
+def check_yaml_n_timesteps(hyperparams: dict[str, Any], where: str) -> None:
+    """
+    Refuse a hyperparameter entry whose ``n_timesteps`` is not a positive number (it would train nothing, then meta-test).
+
+    :param hyperparams: the entry
+    :param where: the file and entry, for the message
+    """
+    steps = hyperparams.get("n_timesteps")
+    if steps is not None and (not isinstance(steps, (int, float)) or isinstance(steps, bool) or steps < 1):
+        raise UsageError(f"n_timesteps in {where} must be a positive number of env steps, got {steps!r}")

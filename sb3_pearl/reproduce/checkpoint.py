@@ -1,0 +1,165 @@
+"""Checkpoints of a reproduction run, so that ``reproduce run`` resumes an interrupted run where it stopped.
+
+A run folder holds, until its result.json is written, ``checkpoint/``:
+
+- ``state.json``: where the run is (``phase``: ``train`` or ``evaluate``), its env steps, the CPU and wall seconds
+  spent so far over all its processes, the evaluation phases already done (``phases``: their result.json entries);
+- ``model.zip`` and ``replay.pkl``: the model (with every RNG state and, for a DummyVecEnv, the envs' open episodes:
+  :mod:`sb3_pearl.common.persistence`) and its replay buffer, written at the start of the first iteration after
+  every ``interval_s`` seconds of training (:class:`PeriodicCheckpoint`), and once more when training ends;
+- ``progress.csv``: the training log as it was at that checkpoint (the resumed run continues it).
+
+Every file is written atomically (temporary file, then rename), the state last, so a kill at any moment leaves the
+previous checkpoint usable. Resuming from an iteration start is exact (docs/reliability.md, "Exact resume"): the
+resumed run trains the same weights, bit for bit; an evaluation phase that was cut is run again from its start
+(the meta-tests are seeded per trajectory with common random numbers, the measures and diagnostics by their own
+seeds), so the result.json metrics are those of an uninterrupted run (tests/test_reproduce_resume.py). The folder
+is deleted once result.json is written.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import CSVOutputFormat, Logger
+
+from sb3_pearl.common.atomic import atomic_write
+
+CHECKPOINT_DIR = "checkpoint"
+STATE_FILE = "state.json"
+MODEL_FILE = "model.zip"
+REPLAY_FILE = "replay.pkl"
+PROGRESS_SNAPSHOT = "progress.csv"
+DEFAULT_INTERVAL_S = 600.0  # every 10 minutes of training
+
+Interrupt = Callable[[str, int], None]  # (where, count): tests raise in it to simulate a kill
+
+
+class RunCheckpoint:
+    """
+    The ``checkpoint/`` folder of one run folder.
+
+    :param run_folder: the run folder
+    """
+
+    def __init__(self, run_folder: str | Path) -> None:
+        self.run_folder = Path(run_folder)
+        self.folder = self.run_folder / CHECKPOINT_DIR
+
+    def read_state(self) -> dict[str, Any] | None:
+        """The saved state, None when there is no usable checkpoint (a state without its model is none)."""
+        path = self.folder / STATE_FILE
+        if not path.is_file():
+            return None
+        try:
+            state = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            raise ValueError(f"{path} is unreadable ({error}): delete {self.folder} to restart the run from zero") from error
+        if not (self.folder / MODEL_FILE).is_file():
+            return None
+        return state
+
+    def write_state(self, state: dict[str, Any]) -> None:
+        """Write the state (atomically, last)."""
+        with atomic_write(self.folder / STATE_FILE, "w") as file:
+            json.dump(state, file, indent=1, allow_nan=False)
+
+    def save_model(self, model: Any, progress: Path | None) -> None:
+        """Save the model, its replay buffer (off-policy models) and a snapshot of the training log."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        model.save(self.folder / MODEL_FILE)
+        if getattr(model, "replay_buffer", None) is not None and hasattr(model, "save_replay_buffer"):
+            model.save_replay_buffer(self.folder / REPLAY_FILE)
+        if progress is not None and progress.is_file():
+            with atomic_write(self.folder / PROGRESS_SNAPSHOT, "wb") as file:
+                file.write(progress.read_bytes())
+
+    def load_model(self, algo_cls: Any, env: Any, device: str = "auto") -> Any:
+        """The checkpoint's model on ``env`` (envs' episodes and RNG streams restored), with its replay buffer."""
+        model = algo_cls.load(self.folder / MODEL_FILE, env=env, device=device)
+        replay = self.folder / REPLAY_FILE
+        if replay.is_file() and hasattr(model, "load_replay_buffer"):
+            model.load_replay_buffer(replay)
+        return model
+
+    def progress_snapshot(self) -> Path | None:
+        """The training log saved with the checkpoint, if any."""
+        path = self.folder / PROGRESS_SNAPSHOT
+        return path if path.is_file() else None
+
+    def remove(self) -> None:
+        """Delete the checkpoint (the run is complete)."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def csv_logger_continuing(folder: Path, snapshot: Path | None) -> Logger:
+    """
+    SB3's csv logger on ``folder/progress.csv`` that continues the rows of ``snapshot`` (a resumed run) or starts empty.
+
+    :param folder: the run folder
+    :param snapshot: the training log saved with the checkpoint (None: a new log)
+    :return: the logger
+    """
+    output = CSVOutputFormat(str(folder / "progress.csv"))
+    if snapshot is not None:
+        text = snapshot.read_text()
+        header = text.splitlines()[0] if text.strip() else ""
+        if header:
+            output.file.write(text if text.endswith("\n") else text + "\n")
+            output.file.flush()
+            output.keys = header.split(",")  # SB3 extends the header (and rewrites the file) for new keys, as usual
+    return Logger(str(folder), [output])
+
+
+class PeriodicCheckpoint(BaseCallback):
+    """
+    Save a resumable checkpoint at the first iteration start after every ``interval_s`` seconds (0: every iteration).
+
+    PEARL / PEARL+ and MAML call ``on_rollout_start`` before they draw an iteration's tasks, so a checkpoint there
+    resumes bit for bit; Fine-Tune's rollouts are single env steps, its checkpoints hold the envs' open episodes.
+
+    :param checkpoint: the run's checkpoint folder
+    :param progress: the run's training log (snapshotted with each checkpoint)
+    :param interval_s: seconds of training between checkpoints
+    :param on_save: called after each save (the runner writes the state there)
+    :param interrupt: test hook, called as ``interrupt("step", n)`` after every env step and
+        ``interrupt("iteration", n)`` after every iteration-start checkpoint
+    """
+
+    def __init__(
+        self,
+        checkpoint: RunCheckpoint,
+        progress: Path,
+        interval_s: float,
+        on_save: Callable[[], None],
+        interrupt: Interrupt | None = None,
+    ) -> None:
+        super().__init__()
+        self.checkpoint = checkpoint
+        self.progress = progress
+        self.interval_s = interval_s
+        self.on_save = on_save
+        self.interrupt = interrupt
+        self._last = time.monotonic()
+        self._iterations = 0
+
+    def _on_step(self) -> bool:
+        if self.interrupt is not None:
+            self.interrupt("step", self.num_timesteps)
+        return True
+
+    def _on_rollout_start(self) -> None:
+        if time.monotonic() - self._last < self.interval_s or self.model.num_timesteps == 0:
+            return
+        self.checkpoint.save_model(self.model, self.progress)
+        self.on_save()
+        self._last = time.monotonic()
+        self._iterations += 1
+        if self.interrupt is not None:
+            self.interrupt("iteration", self._iterations)

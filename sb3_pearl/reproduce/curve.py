@@ -1,0 +1,147 @@
+"""Learning curves on the held-out test tasks (``curve.csv`` in the run folder), when the budget asks for one.
+
+Every ``every`` env steps of training (at the next iteration start, where the reference evaluates: after an
+iteration's gradient steps) and once at the end, :class:`LearningCurve` runs the PEARL reference's evaluation
+(katerakelly/oyster, ``rlkit/core/rl_algorithm.py`` ``_do_eval`` / ``collect_paths``; docs/reproduce.md, "Learning
+curves") on the first ``n_tasks`` test tasks of the run's meta-test: per task, the context is cleared and
+``n_adapt + 1`` trajectories are rolled out with deterministic actions, the first ``n_prior_trajectories`` with z
+from the prior, each later one with the posterior of every transition so far; the curve's ``reference_return`` is
+the mean over tasks of the *last* trajectory's return (the reference's ``AverageReturn_all_test_tasks``). The same
+rollouts give the k = 0 return and violation rate (the prior policy's). Common random numbers (the eval seed) make
+consecutive points differ by the training only.
+
+The evaluation restores the global RNG streams (``meta_test(crn_seed=...)``) and runs on its own env, so a run with a
+curve trains the same weights, bit for bit, as one without (tests/test_reproduce_resume.py). Rows are written
+atomically after each point; a resumed run keeps the rows up to its checkpoint and recomputes the rest identically.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.common.meta_test import meta_test
+from sb3_pearl.envs.task_protocol import Task
+
+CURVE_FILE = "curve.csv"
+COLUMNS = (
+    "env_steps",
+    "reference_return",
+    "reference_return_std",
+    "k0_return",
+    "k0_violation",
+    "last_violation",
+    "n_tasks",
+    "wall_s",
+)
+
+
+def read_curve(path: str | Path) -> list[dict[str, float]]:
+    """The rows of a ``curve.csv`` (numbers), [] when there is none."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    with open(path, newline="") as file:
+        return [{key: float(value) for key, value in row.items()} for row in csv.DictReader(file)]
+
+
+def write_curve(path: str | Path, rows: list[dict[str, float]]) -> None:
+    """Write the rows atomically."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
+    writer.writeheader()
+    writer.writerows({key: row[key] for key in COLUMNS} for row in rows)
+    with atomic_write(path, "w") as file:
+        file.write(buffer.getvalue())
+
+
+def evaluate_point(model: Any, env: gym.Env, tasks: list[Task], settings: dict[str, Any], eval_seed: int) -> dict[str, float]:
+    """
+    One point of the curve (module docstring).
+
+    :param model: the model being trained
+    :param env: an evaluation env of the family
+    :param tasks: the test tasks
+    :param settings: the budget's ``curve`` entry
+    :param eval_seed: the experiment's eval seed (common random numbers)
+    :return: the row without ``env_steps``
+    """
+    start = time.time()
+    training = model.policy.training if hasattr(model, "policy") else False
+    result = meta_test(
+        model,
+        env,
+        tasks,
+        n_adapt=settings["n_adapt"],
+        n_repeats=1,
+        seed=eval_seed,
+        crn_seed=eval_seed,
+        n_prior_trajectories=settings["n_prior_trajectories"],
+    )
+    if hasattr(model, "policy"):
+        model.policy.set_training_mode(training)
+    last = settings["n_adapt"]
+    finals = np.array([row["return"] for row in result.rows if row["k"] == last])
+    k0 = result.summary[0]
+    return {
+        "reference_return": float(finals.mean()),
+        "reference_return_std": float(finals.std()),
+        "k0_return": float(k0["return_mean"]),
+        "k0_violation": float(k0["violation_rate"]),
+        "last_violation": float(result.summary[-1]["violation_rate"]),
+        "n_tasks": float(len(tasks)),
+        "wall_s": time.time() - start,
+    }
+
+
+class LearningCurve(BaseCallback):
+    """
+    Append a point to ``curve.csv`` every ``settings["every"]`` env steps (at the next iteration start) and at the end.
+
+    :param path: the run's ``curve.csv``
+    :param env: an evaluation env of the family
+    :param tasks: the held-out test tasks (the first ``settings["n_tasks"]`` are used)
+    :param settings: the budget's ``curve`` entry
+    :param eval_seed: the experiment's eval seed
+    :param resume_at: the env steps of the checkpoint a resumed run starts from (its later rows are dropped)
+    """
+
+    def __init__(
+        self, path: Path, env: gym.Env, tasks: list[Task], settings: dict[str, Any], eval_seed: int, resume_at: int = 0
+    ) -> None:
+        super().__init__()
+        self.path = path
+        self.env = env
+        self.tasks = list(tasks)[: settings["n_tasks"]]
+        self.settings = settings
+        self.eval_seed = eval_seed
+        self.rows = [row for row in read_curve(path) if row["env_steps"] <= resume_at]
+        self.next_at = (int(self.rows[-1]["env_steps"]) if self.rows else 0) + settings["every"]
+
+    def _point(self) -> None:
+        steps = int(self.model.num_timesteps)
+        if self.rows and int(self.rows[-1]["env_steps"]) >= steps:
+            return
+        point = evaluate_point(self.model, self.env, self.tasks, self.settings, self.eval_seed)
+        self.rows.append({"env_steps": float(steps), **point})
+        write_curve(self.path, self.rows)
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        steps = int(self.model.num_timesteps)
+        if steps >= self.next_at:
+            self._point()
+            self.next_at = (steps // self.settings["every"] + 1) * self.settings["every"]
+
+    def _on_training_end(self) -> None:
+        self._point()

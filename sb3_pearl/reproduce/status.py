@@ -1,0 +1,126 @@
+"""``reproduce status``: which planned runs are finished, resumable (a checkpoint) or missing, and the CPU time left.
+
+CPU time still needed, per run: a resumable run in training, its CPU seconds per env step so far times the steps
+left, plus the evaluation time of its finished siblings; a run in evaluation, that evaluation time; a missing run,
+the mean CPU time of the finished runs of the same family and algorithm in the plan (unknown when there is none).
+Finished runs written before the CPU time was recorded count their wall time.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+from sb3_pearl.experiments.budgets import load_budget
+from sb3_pearl.experiments.spec import Experiment
+from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_result, run_dir
+from sb3_pearl.reproduce.scheduler import plan_runs
+
+
+class RunStatus(NamedTuple):
+    """One planned run."""
+
+    key: RunKey
+    status: str  # "finished", "resumable" or "missing"
+    progress: str
+    cpu_spent_s: float
+    cpu_left_s: float  # nan: unknown
+
+
+def _finished_cpu(result: dict[str, Any]) -> tuple[float, float]:
+    """(total, evaluation) seconds of a finished run: CPU time where recorded, else wall time."""
+    wall = result.get("wall_time_s") or {}
+    total = float((result.get("cpu") or {}).get("cpu_time_s") or wall.get("total") or math.nan)
+    evaluation = float(wall.get("total", math.nan)) - float(wall.get("train", math.nan))
+    return total, evaluation
+
+
+def run_status(
+    experiment: Experiment,
+    budget_preset: str,
+    seeds: Sequence[int],
+    results_dir: str | os.PathLike[str],
+    families: Sequence[str] | None = None,
+    variants: Sequence[str] | None = None,
+) -> list[RunStatus]:
+    """
+    The status of every planned run.
+
+    :param experiment: the experiment
+    :param budget_preset: the budget preset
+    :param seeds: model seeds
+    :param results_dir: root of the results layout
+    :param families: family names (None: all)
+    :param variants: variant names (None: all)
+    :return: one row per planned run, in plan order
+    """
+    keys = plan_runs(experiment, budget_preset, seeds, families, variants)
+    finished: dict[RunKey, dict[str, Any]] = {}
+    for key in keys:
+        path = run_dir(results_dir, key) / RESULT_FILE
+        if path.is_file():
+            finished[key] = read_result(path)
+
+    def siblings(key: RunKey) -> list[tuple[float, float]]:
+        algo = experiment.variant(key.variant).algo
+        return [
+            _finished_cpu(result)
+            for other, result in finished.items()
+            if other.family == key.family and experiment.variant(other.variant).algo == algo
+        ]
+
+    def mean(values: list[float]) -> float:
+        finite = [v for v in values if math.isfinite(v)]
+        return sum(finite) / len(finite) if finite else math.nan
+
+    rows = []
+    for key in keys:
+        if key in finished:
+            total, _ = _finished_cpu(finished[key])
+            rows.append(RunStatus(key, "finished", "done", total, 0.0))
+            continue
+        known = siblings(key)
+        evaluation = mean([e for _, e in known])
+        state = RunCheckpoint(run_dir(results_dir, key)).read_state()
+        if state is None:
+            rows.append(RunStatus(key, "missing", "-", 0.0, mean([t for t, _ in known])))
+            continue
+        n_total = load_budget(budget_preset, experiment.family(key.family).budget_name, experiment.variant(key.variant).algo)[
+            "n_timesteps"
+        ]
+        done, cpu = int(state["num_timesteps"]), float(state["spent"]["cpu_s"])
+        if state["phase"] == "train":
+            per_step = cpu / done if done > 0 else math.nan
+            left = per_step * (n_total - done) + evaluation
+            progress = f"train {done}/{n_total} steps ({100 * done / n_total:.0f}%)"
+        else:
+            left = evaluation
+            progress = f"evaluate ({', '.join(p for p in state['phases'] if not p.endswith('_s')) or 'starting'})"
+        rows.append(RunStatus(key, "resumable", progress, cpu, left))
+    return rows
+
+
+def format_status(rows: Sequence[RunStatus]) -> str:
+    """The table ``reproduce status`` prints, with the totals."""
+
+    def hours(seconds: float) -> str:
+        return "unknown" if not math.isfinite(seconds) else f"{seconds / 3600:.2f} h"
+
+    lines = [f"{'run':<58} {'status':<10} {'progress':<40} {'CPU spent':>10} {'CPU left':>10}"]
+    for row in rows:
+        spent_h, left_h = hours(row.cpu_spent_s), hours(row.cpu_left_s)
+        lines.append(f"{row.key.label():<58} {row.status:<10} {row.progress:<40} {spent_h:>10} {left_h:>10}")
+    counts = {s: sum(r.status == s for r in rows) for s in ("finished", "resumable", "missing")}
+    left = [r.cpu_left_s for r in rows if r.status != "finished"]
+    unknown = sum(not math.isfinite(v) for v in left)
+    total = sum(v for v in left if math.isfinite(v))
+    lines.append(
+        f"{counts['finished']} finished, {counts['resumable']} resumable, {counts['missing']} missing; "
+        f"CPU time left {hours(total)} (one core)" + (f", plus {unknown} run(s) of unknown cost" if unknown else "")
+    )
+    if counts["resumable"] or counts["missing"]:
+        lines.append("The same `reproduce run` command completes them (resumable runs continue from their checkpoints).")
+    return "\n".join(lines)

@@ -1,0 +1,124 @@
+"""Harness runs that survive interruption: a run killed inside an iteration or inside its meta-test, then run again,
+writes the result.json metrics of an uninterrupted run, bit for bit (sb3_pearl/reproduce/checkpoint.py)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sb3_pearl.experiments.budgets import load_budget
+from sb3_pearl.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
+from sb3_pearl.reproduce.cli import main
+from sb3_pearl.reproduce.curve import CURVE_FILE, read_curve
+from sb3_pearl.reproduce.layout import RESULT_FILE
+from sb3_pearl.reproduce.runner import run_one
+
+RUN = ("safe-point", "safe-point", "alpha-0.1", 0, "smoke")
+FOLDER = Path("safe-point", "safe-point", "alpha-0.1", "seed0")
+METRICS = ("num_timesteps", "meta_test", "shift", "competence", "prior_critic", "diagnostics")
+
+
+class Killed(Exception):
+    """Stands in for SIGKILL: nothing after the raise runs, only what is on disk survives."""
+
+
+def _kill_at(where: str, count: int) -> Any:
+    def hook(point: str, n: int) -> None:
+        if point == where and n == count:
+            raise Killed(f"{where} {count}")
+
+    return hook
+
+
+def _metrics(result: dict[str, Any]) -> dict[str, Any]:
+    def strip(value: Any) -> Any:  # wall times differ between runs, nothing else may
+        if isinstance(value, dict):
+            return {k: strip(v) for k, v in value.items() if k != "wall_time_s"}
+        if isinstance(value, list):
+            return [strip(v) for v in value]
+        return value
+
+    return strip({key: result[key] for key in METRICS})
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    return run_one(*RUN, tmp_path_factory.mktemp("whole"), verbose=0)
+
+
+@pytest.mark.parametrize(
+    "where, count, phase",
+    [
+        ("step", 300, "train"),  # inside iteration 3 (steps 240-360): resumes from the checkpoint at its start (240)
+        ("meta_test", 7, "evaluate"),  # inside the held-out meta-test: training done, the meta-test runs again
+    ],
+)
+def test_an_interrupted_run_resumes_to_the_same_metrics(
+    where: str, count: int, phase: str, uninterrupted: dict[str, Any], tmp_path: Path
+) -> None:
+    with pytest.raises(Killed):
+        run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at(where, count))
+    folder = tmp_path / FOLDER
+    assert not (folder / RESULT_FILE).exists()
+    state = RunCheckpoint(folder).read_state()
+    assert state is not None and state["phase"] == phase
+    if phase == "train":
+        assert state["num_timesteps"] == 240 and state["spent"]["cpu_s"] > 0
+    else:
+        assert state["num_timesteps"] == 400 and "meta_test" not in state["phases"]
+    # `reproduce status` sees the resumable run, with its progress.
+    assert main(["status", "safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants",
+                 "alpha-0.1", "--results-dir", str(tmp_path)]) == 0  # fmt: skip
+    resumed = run_one(*RUN, tmp_path, verbose=0)
+    assert _metrics(resumed) == _metrics(uninterrupted)
+    assert json.loads((folder / RESULT_FILE).read_text())["meta_test"]["summary"] == uninterrupted["meta_test"]["summary"]
+    assert not (folder / CHECKPOINT_DIR).exists()  # removed once result.json is written
+    header = (folder / "progress.csv").read_text().splitlines()[0]
+    assert "time/total_timesteps" in header  # the training log was continued, not restarted empty
+
+
+def test_a_checkpoint_of_other_settings_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(Killed):
+        run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 150))
+    checkpoint = RunCheckpoint(tmp_path / FOLDER)
+    state = checkpoint.read_state()
+    assert state is not None and state["num_timesteps"] == 120
+    state["identity"]["n_timesteps"] = 12345  # as if the preset had changed since
+    checkpoint.write_state(state)
+    with pytest.raises(ValueError, match="written by a run with other settings.*--force"):
+        run_one(*RUN, tmp_path, verbose=0)
+
+
+CURVE = {"every": 120, "n_tasks": 2, "n_adapt": 2, "n_prior_trajectories": 2}
+
+
+@pytest.fixture
+def with_curve(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The smoke budget with a learning curve every 120 steps (the reference's protocol: 2 prior trajectories)."""
+    import sb3_pearl.reproduce.runner as runner
+
+    def load(*args: Any) -> dict[str, Any]:
+        return {**load_budget(*args), "curve": dict(CURVE)}
+
+    monkeypatch.setattr(runner, "load_budget", load)
+
+
+def test_a_learning_curve_changes_nothing_else_and_resumes(
+    with_curve: None, uninterrupted: dict[str, Any], tmp_path: Path
+) -> None:
+    whole = run_one(*RUN, tmp_path / "whole", verbose=0)
+    assert _metrics(whole) == _metrics(uninterrupted)  # the evaluations do not perturb training
+    rows = read_curve(tmp_path / "whole" / FOLDER / CURVE_FILE)
+    assert [row["env_steps"] for row in rows] == [120, 240, 360, 400]  # every 120 steps at iteration starts, and the end
+    for row in rows:
+        assert row["n_tasks"] == 2 and 0.0 <= row["k0_violation"] <= 1.0 and row["reference_return"] < 0
+    with pytest.raises(Killed):  # killed inside iteration 3, after the points at 120 and 240
+        run_one(*RUN, tmp_path / "cut", verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 300))
+    run_one(*RUN, tmp_path / "cut", verbose=0)
+    resumed = read_curve(tmp_path / "cut" / FOLDER / CURVE_FILE)
+    assert [{k: v for k, v in row.items() if k != "wall_s"} for row in resumed] == [
+        {k: v for k, v in row.items() if k != "wall_s"} for row in rows
+    ]
