@@ -145,3 +145,26 @@ class LearningCurve(BaseCallback):
 
     def _on_training_end(self) -> None:
         self._point()
+
+
+def curve_table(experiment: Any, group: Any) -> list[str]:
+    """
+    The last point of each run's learning curve (result.json ``curve``), for ``reproduce report``.
+
+    :param experiment: the experiment (variant order and labels)
+    :param group: variant -> seed -> result
+    :return: markdown table lines
+    """
+    lines = [
+        "| variant | seed | env steps | return (reference protocol) | k = 0 return | k = 0 violation % |",
+        "|---|---|---|---|---|---|",
+    ]
+    for variant in [v for v in experiment.variants if v.name in group]:
+        for seed, result in sorted(group[variant.name].items()):
+            if result.get("curve"):
+                last = result["curve"][-1]
+                lines.append(
+                    f"| {variant.label} | {seed} | {int(last['env_steps'])} | {last['reference_return']:.1f} | "
+                    f"{last['k0_return']:.1f} | {100 * last['k0_violation']:.1f} |"
+                )
+    return lines

@@ -131,3 +131,49 @@ def plot_seeds(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return True
+
+
+def plot_curves(
+    experiment: Experiment,
+    group: Mapping[str, Mapping[int, dict[str, Any]]],
+    path: str | os.PathLike[str],
+    title: str = "",
+) -> bool:
+    """
+    The learning curves on the test tasks (result.json ``curve``, ``sb3_pearl/reproduce/curve.py``) of one group.
+
+    Left: the reference's metric (mean return of the last evaluation trajectory) against env steps, mean over seeds
+    with the seeds' range shaded; right: the prior policy's (k = 0) violation rate.
+
+    :param experiment: the experiment (variant order and labels)
+    :param group: variant -> seed -> result
+    :param path: PNG path
+    :param title: figure title
+    :return: whether a figure was written (False: no run has a curve)
+    """
+    curves = {
+        v.name: [r["curve"] for r in group[v.name].values() if r.get("curve")] for v in experiment.variants if v.name in group
+    }
+    curves = {name: runs for name, runs in curves.items() if runs}
+    if not curves:
+        return False
+    fig, (ax_return, ax_violation) = plt.subplots(1, 2, figsize=(10, 4))
+    for index, (name, runs) in enumerate(curves.items()):
+        steps = sorted(set.intersection(*(set(row["env_steps"] for row in rows) for rows in runs)))
+        for ax, key, scale in ((ax_return, "reference_return", 1.0), (ax_violation, "k0_violation", 100.0)):
+            values = np.array([[{row["env_steps"]: row[key] for row in rows}[s] * scale for s in steps] for rows in runs])
+            label = f"{experiment.variant(name).label} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
+            ax.plot(steps, values.mean(axis=0), color=f"C{index}", label=label)
+            if len(runs) > 1:
+                ax.fill_between(steps, values.min(axis=0), values.max(axis=0), color=f"C{index}", alpha=0.2)
+    ax_return.set_xlabel("env steps")
+    ax_return.set_ylabel("return of the last trajectory (reference protocol)")
+    ax_violation.set_xlabel("env steps")
+    ax_violation.set_ylabel("k = 0 violation rate [%]")
+    ax_return.legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True

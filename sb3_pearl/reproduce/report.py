@@ -30,6 +30,7 @@ from sb3_pearl.common.meta_test import PAPER_KS
 from sb3_pearl.common.statistics import wilson_interval
 from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Claim, Experiment, resolve_k
+from sb3_pearl.reproduce.curve import curve_table
 from sb3_pearl.reproduce.layout import find_results, read_result
 from sb3_pearl.reproduce.prior_report import prior_critic_table, selection_table
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval, verdict
@@ -390,7 +391,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     :param figures_link: how the markdown links to ``figures_dir`` (relative to the output file)
     :return: the markdown
     """
-    from sb3_pearl.reproduce.figures import plot_group, plot_seeds
+    from sb3_pearl.reproduce.figures import plot_curves, plot_group, plot_seeds
 
     groups = load_groups(results_dir)
     out = [
@@ -463,6 +464,17 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         title = f"{experiment.name} / {family} (budget {budget})"
         plot_group(experiment, group, Path(figures_dir) / name, title=title)
         out += [f"![adaptation curves, {experiment_name} / {family}]({figures_link.rstrip('/')}/{name})", ""]
+        curves_name = f"reproduce_{experiment_name}_{family}_{budget}_curves.png"
+        if plot_curves(experiment, group, Path(figures_dir) / curves_name, title=title):
+            out += [
+                'Learning curves on the test tasks (docs/reproduce.md, "Learning curves": the reference\'s protocol; '
+                "mean over seeds, the shade spans the seeds):",
+                "",
+                *curve_table(experiment, group),
+                "",
+                f"![learning curves, {experiment_name} / {family}]({figures_link.rstrip('/')}/{curves_name})",
+                "",
+            ]
         seeds_name = f"reproduce_{experiment_name}_{family}_{budget}_seeds.png"
         if plot_seeds(experiment, group, Path(figures_dir) / seeds_name, title=title):
             out += [f"![per-seed rates, {experiment_name} / {family}]({figures_link.rstrip('/')}/{seeds_name})", ""]

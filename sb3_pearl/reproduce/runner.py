@@ -40,7 +40,7 @@ from sb3_pearl.reproduce.checkpoint import (
     csv_logger_continuing,
 )
 from sb3_pearl.reproduce.competence import evaluate_competence
-from sb3_pearl.reproduce.curve import CURVE_FILE, LearningCurve
+from sb3_pearl.reproduce.curve import CURVE_FILE, LearningCurve, read_curve
 from sb3_pearl.reproduce.layout import (
     MODEL_FILE,
     PROGRESS_FILE,
@@ -359,6 +359,7 @@ def run_one(
             "competence": competence,
             "prior_critic": prior_critic,
             "diagnostics": diagnostics,
+            "curve": read_curve(folder / CURVE_FILE) or None,  # the learning curve, when the budget asks for one
         }
     )
     write_json_atomic(folder / RESULT_FILE, result)
