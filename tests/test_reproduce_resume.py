@@ -4,6 +4,7 @@ writes the result.json metrics of an uninterrupted run, bit for bit (sb3_pearl/r
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -119,6 +120,9 @@ def test_a_learning_curve_changes_nothing_else_and_resumes(
         run_one(*RUN, tmp_path / "cut", verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 300))
     run_one(*RUN, tmp_path / "cut", verbose=0)
     resumed = read_curve(tmp_path / "cut" / FOLDER / CURVE_FILE)
-    assert [{k: v for k, v in row.items() if k != "wall_s"} for row in resumed] == [
-        {k: v for k, v in row.items() if k != "wall_s"} for row in rows
-    ]
+    assert _without_wall_time(resumed) == _without_wall_time(rows)
+    assert {row["competent"] for row in rows} <= {0.0, 1.0}  # the family's competence check at every point
+
+
+def _without_wall_time(rows: list[dict[str, float]]) -> list[dict[str, float | None]]:
+    return [{k: None if math.isnan(v) else v for k, v in row.items() if k != "wall_s"} for row in rows]

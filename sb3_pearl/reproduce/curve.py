@@ -7,8 +7,10 @@ curves") on the first ``n_tasks`` test tasks of the run's meta-test: per task, t
 ``n_adapt + 1`` trajectories are rolled out with deterministic actions, the first ``n_prior_trajectories`` with z
 from the prior, each later one with the posterior of every transition so far; the curve's ``reference_return`` is
 the mean over tasks of the *last* trajectory's return (the reference's ``AverageReturn_all_test_tasks``). The same
-rollouts give the k = 0 return and violation rate (the prior policy's). Common random numbers (the eval seed) make
-consecutive points differ by the training only.
+rollouts give the k = 0 return and violation rate (the prior policy's); the harness's competence check on training
+tasks (the family's criteria, e.g. Walker2D-vel's velocity error and falls) is run at every point too, so the curve
+says at which env step the model becomes competent (``competent``, ``criterion_<i>``). Common random numbers (the
+eval seed) make consecutive points differ by the training only.
 
 The evaluation restores the global RNG streams (``meta_test(crn_seed=...)``) and runs on its own env, so a run with a
 curve trains the same weights, bit for bit, as one without (tests/test_reproduce_resume.py). Rows are written
@@ -19,7 +21,9 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +34,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.meta_test import meta_test
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.experiments.spec import Criterion
+from sb3_pearl.reproduce.competence import evaluate_competence
 
 CURVE_FILE = "curve.csv"
 COLUMNS = (
@@ -40,8 +46,12 @@ COLUMNS = (
     "k0_violation",
     "last_violation",
     "n_tasks",
+    "competent",
+    "criterion_0",
+    "criterion_1",
     "wall_s",
 )
+MAX_CRITERIA = 2  # criterion_<i>: the value of the family's i-th competence criterion (nan: none)
 
 
 def read_curve(path: str | Path) -> list[dict[str, float]]:
@@ -50,7 +60,7 @@ def read_curve(path: str | Path) -> list[dict[str, float]]:
     if not path.is_file():
         return []
     with open(path, newline="") as file:
-        return [{key: float(value) for key, value in row.items()} for row in csv.DictReader(file)]
+        return [{key: float(value) if value != "" else math.nan for key, value in row.items()} for row in csv.DictReader(file)]
 
 
 def write_curve(path: str | Path, rows: list[dict[str, float]]) -> None:
@@ -58,12 +68,19 @@ def write_curve(path: str | Path, rows: list[dict[str, float]]) -> None:
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
     writer.writeheader()
-    writer.writerows({key: row[key] for key in COLUMNS} for row in rows)
+    writer.writerows({key: row.get(key, math.nan) for key in COLUMNS} for row in rows)
     with atomic_write(path, "w") as file:
         file.write(buffer.getvalue())
 
 
-def evaluate_point(model: Any, env: gym.Env, tasks: list[Task], settings: dict[str, Any], eval_seed: int) -> dict[str, float]:
+def evaluate_point(
+    model: Any,
+    env: gym.Env,
+    tasks: list[Task],
+    settings: dict[str, Any],
+    eval_seed: int,
+    competence: tuple[Sequence[Criterion], dict[str, Any], tuple[str, ...]] | None = None,
+) -> dict[str, float]:
     """
     One point of the curve (module docstring).
 
@@ -72,6 +89,8 @@ def evaluate_point(model: Any, env: gym.Env, tasks: list[Task], settings: dict[s
     :param tasks: the test tasks
     :param settings: the budget's ``curve`` entry
     :param eval_seed: the experiment's eval seed (common random numbers)
+    :param competence: the family's criteria, the competence meta-test's settings and trace keys: the competence
+        check on the model's first training tasks (the harness's, docs/reproduce.md) joins the row; None: nan
     :return: the row without ``env_steps``
     """
     start = time.time()
@@ -86,11 +105,28 @@ def evaluate_point(model: Any, env: gym.Env, tasks: list[Task], settings: dict[s
         crn_seed=eval_seed,
         n_prior_trajectories=settings["n_prior_trajectories"],
     )
-    if hasattr(model, "policy"):
-        model.policy.set_training_mode(training)
     last = settings["n_adapt"]
     finals = np.array([row["return"] for row in result.rows if row["k"] == last])
     k0 = result.summary[0]
+    check: dict[str, float] = {"competent": math.nan, **{f"criterion_{i}": math.nan for i in range(MAX_CRITERIA)}}
+    if competence is not None and getattr(model, "train_tasks", None):
+        criteria, comp_settings, trace_keys = competence
+        on_train = meta_test(
+            model,
+            env,
+            list(model.train_tasks)[: comp_settings["n_tasks"]],
+            n_adapt=comp_settings["n_adapt"],
+            n_repeats=comp_settings["n_repeats"],
+            seed=eval_seed,
+            crn_seed=eval_seed,
+            trace_keys=trace_keys,
+        )
+        verdict = evaluate_competence(on_train, criteria)
+        check["competent"] = float(verdict["passed"])
+        for i, entry in enumerate(verdict["criteria"][:MAX_CRITERIA]):
+            check[f"criterion_{i}"] = float(entry["value"])
+    if hasattr(model, "policy"):
+        model.policy.set_training_mode(training)
     return {
         "reference_return": float(finals.mean()),
         "reference_return_std": float(finals.std()),
@@ -98,6 +134,7 @@ def evaluate_point(model: Any, env: gym.Env, tasks: list[Task], settings: dict[s
         "k0_violation": float(k0["violation_rate"]),
         "last_violation": float(result.summary[-1]["violation_rate"]),
         "n_tasks": float(len(tasks)),
+        **check,
         "wall_s": time.time() - start,
     }
 
@@ -112,10 +149,18 @@ class LearningCurve(BaseCallback):
     :param settings: the budget's ``curve`` entry
     :param eval_seed: the experiment's eval seed
     :param resume_at: the env steps of the checkpoint a resumed run starts from (its later rows are dropped)
+    :param competence: the family's competence check, evaluated at every point too (:func:`evaluate_point`)
     """
 
     def __init__(
-        self, path: Path, env: gym.Env, tasks: list[Task], settings: dict[str, Any], eval_seed: int, resume_at: int = 0
+        self,
+        path: Path,
+        env: gym.Env,
+        tasks: list[Task],
+        settings: dict[str, Any],
+        eval_seed: int,
+        resume_at: int = 0,
+        competence: tuple[Sequence[Criterion], dict[str, Any], tuple[str, ...]] | None = None,
     ) -> None:
         super().__init__()
         self.path = path
@@ -123,6 +168,7 @@ class LearningCurve(BaseCallback):
         self.tasks = list(tasks)[: settings["n_tasks"]]
         self.settings = settings
         self.eval_seed = eval_seed
+        self.competence = competence
         self.rows = [row for row in read_curve(path) if row["env_steps"] <= resume_at]
         self.next_at = (int(self.rows[-1]["env_steps"]) if self.rows else 0) + settings["every"]
 
@@ -130,7 +176,7 @@ class LearningCurve(BaseCallback):
         steps = int(self.model.num_timesteps)
         if self.rows and int(self.rows[-1]["env_steps"]) >= steps:
             return
-        point = evaluate_point(self.model, self.env, self.tasks, self.settings, self.eval_seed)
+        point = evaluate_point(self.model, self.env, self.tasks, self.settings, self.eval_seed, self.competence)
         self.rows.append({"env_steps": float(steps), **point})
         write_curve(self.path, self.rows)
 

@@ -246,7 +246,15 @@ def run_one(
             )
             resume_at = int(state["num_timesteps"]) if state is not None else 0
             callbacks.append(
-                LearningCurve(folder / CURVE_FILE, curve_env, curve_tasks, budget["curve"], experiment.eval_seed, resume_at)
+                LearningCurve(
+                    folder / CURVE_FILE,
+                    curve_env,
+                    curve_tasks,
+                    budget["curve"],
+                    experiment.eval_seed,
+                    resume_at,
+                    (family.competence, budget["competence_meta_test"], family.trace_keys()) if family.competence else None,
+                )
             )
         if remaining > 0:
             model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=state is None)
