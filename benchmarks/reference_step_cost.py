@@ -51,6 +51,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--updates", type=int, default=30, help="gradient steps timed per configuration")
     parser.add_argument("--steps", type=int, default=500_000, help="env steps of the projected run")
+    parser.add_argument(
+        "--configs", default=",".join(f"{b}x{w}" for b, w in CONFIGS), help="rows-per-task x width, the first the reference"
+    )
     args = parser.parse_args()
     th.set_num_threads(1)
     budget = load_budget("paper", "cheetah-vel", "pearl")
@@ -62,7 +65,8 @@ def main() -> None:
     print("| rows per task | width | s / gradient step | ratio to 256 x 300 | s / env step | core-hours to 500k |")
     print("|---|---|---|---|---|---|")
     full = None
-    for batch_size, width in CONFIGS:
+    configs = [tuple(int(v) for v in item.split("x")) for item in args.configs.split(",")]
+    for batch_size, width in configs:
         step, collect = measure(batch_size, width, args.updates)
         full = full or step
         hours = (grads * step + (args.steps + curve_steps) * collect) / 3600

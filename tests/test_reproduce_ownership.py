@@ -171,6 +171,14 @@ def test_a_yaml_entry_with_a_negative_budget_is_refused() -> None:
         check_yaml_n_timesteps({"n_timesteps": -100}, "x.yml [Env]")
 
 
+def test_a_results_dir_that_is_a_file_is_refused_before_any_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    target = tmp_path / "results.txt"
+    target.write_text("not a folder")
+    args = ["run", "safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0"]
+    assert main([*args, "--results-dir", str(target / "sub")]) == 2
+    assert f"{target} is a file, not a folder" in capsys.readouterr().err
+
+
 def test_seed_ranges_and_large_plans_are_bounded(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(ValueError, match="names more than 1000 seeds"):
         parse_seeds("0-120000")

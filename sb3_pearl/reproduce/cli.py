@@ -26,6 +26,20 @@ BACKENDS = ("local", "ray")
 RAY_OPTIONS = ("address", "cpus_per_run", "gpus_per_run", "retries", "storage_path")
 
 
+def check_results_dir(path: str) -> None:
+    """Refuse, before any run starts, a results dir that is a file or cannot be written."""
+    import os
+
+    folder = os.path.abspath(path)
+    existing = folder
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        raise ValueError(f"--results-dir {path}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"--results-dir {path}: {existing} is not writable")
+
+
 CONFIRM_RUNS = 200  # a larger plan needs --yes (a typo in --seeds must not start days of runs)
 
 
@@ -128,6 +142,8 @@ def _run(args: argparse.Namespace) -> int:
         options = ", ".join("--" + name.replace("_", "-") for name in given)
         raise ValueError(f"{options} only apply to --backend ray")
     planned = plan_runs(experiment, budget, seeds, args.family, args.variants)  # every name and override checked
+    if not args.dry_run:
+        check_results_dir(args.results_dir)
     if len(planned) > CONFIRM_RUNS and not args.yes and not args.dry_run:
         raise ValueError(f"{len(planned)} runs planned (more than {CONFIRM_RUNS}): check --seeds, then add --yes to confirm")
     if args.dry_run:
