@@ -22,6 +22,7 @@ from rl_zoo3 import ALGOS, create_test_env
 from rl_zoo3.utils import get_model_path
 from stable_baselines3.common.utils import set_random_seed
 
+from sb3_pearl.common.checks import non_negative_int, positive_int
 from sb3_pearl.common.meta_test import ROW_COLUMNS, MetaTestResult, get_test_tasks, meta_test
 from sb3_pearl.common.runtime import has_display
 from sb3_pearl.zoo.experiment_manager import check_model_env, check_model_spaces
@@ -41,11 +42,13 @@ def enjoy_parser() -> argparse.ArgumentParser:
     parser.add_argument("--algo", help="RL Algorithm", default="pearlplus", type=str, choices=list(ALGOS.keys()))
     parser.add_argument("--exp-id", help="Experiment ID (default: 0: latest, -1: no exp folder)", default=0, type=int)
     parser.add_argument("--load-best", action="store_true", default=False, help="Load the best model (best_model.zip)")
-    parser.add_argument("--load-checkpoint", type=int, help="Load the checkpoint of this many timesteps")
+    parser.add_argument("--load-checkpoint", type=positive_int, help="Load the checkpoint of this many timesteps")
     parser.add_argument("--load-last-checkpoint", action="store_true", default=False, help="Load the last checkpoint")
-    parser.add_argument("--n-tasks", help="number of test tasks", default=3, type=int)
-    parser.add_argument("--n-adapt", help="last trajectory index K (k = 0 prior, 1..K posterior)", default=5, type=int)
-    parser.add_argument("--n-repeats", help="repeats of the sequence per task", default=1, type=int)
+    parser.add_argument("--n-tasks", help="number of test tasks", default=3, type=positive_int)
+    parser.add_argument(
+        "--n-adapt", help="last trajectory index K (k = 0 prior, 1..K posterior)", default=5, type=non_negative_int
+    )
+    parser.add_argument("--n-repeats", help="repeats of the sequence per task", default=1, type=positive_int)
     parser.add_argument(
         "--sample-tasks",
         action="store_true",
@@ -64,7 +67,7 @@ def enjoy_parser() -> argparse.ArgumentParser:
         help="Save the adaptation curve (and, for the merge family, speed profiles and the b_min scatter); "
         "optional PNG path (default: <run folder>/enjoy_adaptation.png)",
     )
-    parser.add_argument("--seed", help="Random generator seed", type=int, default=0)
+    parser.add_argument("--seed", help="Random generator seed", type=non_negative_int, default=0)
     parser.add_argument("--device", help="PyTorch device to be use (ex: cpu, cuda...)", default="auto", type=str)
     parser.add_argument("--num-threads", help="Number of threads for PyTorch (-1 to use default)", default=-1, type=int)
     parser.add_argument("--verbose", help="Verbose mode (0: no output, 1: INFO)", default=1, type=int)
