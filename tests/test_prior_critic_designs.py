@@ -196,3 +196,28 @@ def test_the_experiments_share_their_reference_runs() -> None:
     )
     with pytest.raises(ValueError, match="shared variant 'alpha-0.1' is declared differently in safe-point"):
         check_shared(wrong, EXPERIMENTS)
+
+
+def test_the_box_conservative_gap_by_hand() -> None:
+    """CQL(H) on Box actions: log of the importance-weighted mean of exp(Q) over uniform and policy actions, minus Q(data)."""
+    from sb3_pearl.common.soft_actor_critic import PolicyEval, conservative_gap
+
+    weights = th.tensor([0.5, -1.0, 2.0, 0.25])  # Q(x, a) = w . [x, a] for a 2-d input and a 2-d action, two critics
+
+    def critic(inputs: th.Tensor) -> th.Tensor:
+        return th.stack([inputs @ weights, 2.0 * inputs @ weights]).unsqueeze(-1)  # (2, N, 1)
+
+    x = th.tensor([[0.1, 0.2], [0.3, -0.4], [1.0, 0.0]])
+    pe = PolicyEval(th.tensor([[0.5, -0.5], [0.0, 0.9], [-0.2, 0.1]]), None, th.tensor([[0.3], [-1.2], [0.7]]))
+    q_data = th.zeros(2, 3, 1)
+    th.manual_seed(0)
+    got = conservative_gap(critic, x, pe, q_data, n_random=3)
+    th.manual_seed(0)
+    uniform = th.rand(3, 3, 2) * 2 - 1
+    for c, scale in enumerate((1.0, 2.0)):
+        for i in range(3):
+            terms = [scale * float(th.cat([x[i], uniform[r, i]]) @ weights) + 2 * np.log(2.0) for r in range(3)]
+            terms.append(scale * float(th.cat([x[i], pe.actions[i]]) @ weights) - float(pe.log_prob[i]))
+            expected = np.log(np.mean(np.exp(terms)))
+            assert float(got[c, i, 0]) == pytest.approx(expected, rel=1e-5)
+    assert got.shape == (2, 3, 1)

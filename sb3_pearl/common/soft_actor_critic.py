@@ -13,6 +13,7 @@ The actor loss is ``-mean(V)`` computed with frozen critic parameters.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -64,23 +65,44 @@ def q_of_actions(critic_fn: CriticFn, x: th.Tensor, actions: th.Tensor, discrete
     return critic_fn(th.cat([x, actions], dim=-1))
 
 
-def conservative_gap(critic_fn: CriticFn, x: th.Tensor, pe: PolicyEval, q_data: th.Tensor) -> th.Tensor:
-    """
-    CQL's gap per critic and row (Kumar et al. 2020): the critic at the policy's actions minus at the stored ones.
+CQL_RANDOM_ACTIONS = 4  # uniform actions per row in the Box form of the conservative penalty
 
-    Box: ``Q(s, a~pi) - Q(s, a_data)`` with the sampled action detached (CQL with the policy as the proposal);
-    Discrete: ``logsumexp_a Q(s, a) - Q(s, a_data)`` (CQL(H), exact over the actions). Minimising it pushes the
-    critic down on actions the data do not cover and up on those they do; gradients reach the critic only.
+
+def conservative_gap(
+    critic_fn: CriticFn, x: th.Tensor, pe: PolicyEval, q_data: th.Tensor, n_random: int = CQL_RANDOM_ACTIONS
+) -> th.Tensor:
+    """
+    CQL(H)'s gap per critic and row (Kumar et al. 2020, eq. 4): a soft maximum of the critic over actions minus the
+    critic at the stored action. Minimising it pushes the critic down on actions the data do not cover and up on
+    those they do; gradients reach the critic only (the actions enter detached).
+
+    Discrete: ``logsumexp_a Q(s, a) - Q(s, a_data)``, exact over the actions. Box (actions scaled to [-1, 1]^d):
+    ``log E_mu[exp(Q) / mu]`` estimated by importance sampling over ``n_random`` uniform actions (density 2^-d) and the
+    policy's sampled action (density ``pi``): ``logsumexp_i (Q(s, a_i) - log mu(a_i)) - log(n_random + 1)`` (CQL's
+    practical form). Bounded below by the critic's value at any of those actions, unlike ``Q(s, pi) - Q(s, a_data)``.
 
     :param critic_fn: the critic (not frozen)
     :param x: critic inputs without the action (N, in_dim)
-    :param pe: the policy evaluated on the same rows (its actions are detached here)
+    :param pe: the policy evaluated on the same rows (its actions and log-probabilities are detached here)
     :param q_data: the critic at the stored actions, (n_critics, N, 1) (:func:`q_of_actions`)
+    :param n_random: uniform actions per row (Box)
     :return: (n_critics, N, 1)
     """
     if pe.actions is None:
         return th.logsumexp(critic_fn(x), dim=-1, keepdim=True) - q_data
-    return critic_fn(th.cat([x, pe.actions.detach()], dim=-1)) - q_data
+    n, action_dim = pe.actions.shape
+    uniform = th.rand(n_random, n, action_dim, device=x.device) * 2.0 - 1.0  # (R, N, A) in [-1, 1]^d
+    actions = th.cat([uniform, pe.actions.detach().unsqueeze(0)])  # (R + 1, N, A)
+    inputs = th.cat([x.unsqueeze(0).expand(n_random + 1, -1, -1), actions], dim=-1).reshape((n_random + 1) * n, -1)
+    q = critic_fn(inputs).reshape(q_data.shape[0], n_random + 1, n)  # (n_critics, R + 1, N)
+    log_density = th.cat(
+        [
+            th.full((n_random, n), -action_dim * math.log(2.0), device=x.device),  # uniform on [-1, 1]^d
+            pe.log_prob.detach().reshape(1, n),
+        ]
+    )  # (R + 1, N)
+    soft_max = th.logsumexp(q - log_density.unsqueeze(0), dim=1) - math.log(n_random + 1)  # (n_critics, N)
+    return soft_max.unsqueeze(-1) - q_data
 
 
 def soft_value(q: th.Tensor, pe: PolicyEval, ent_coef: th.Tensor) -> th.Tensor:

@@ -4,17 +4,22 @@ A run folder holds, until its result.json is written, ``checkpoint/``:
 
 - ``state.json``: where the run is (``phase``: ``train`` or ``evaluate``), its env steps, the CPU and wall seconds
   spent so far over all its processes, the evaluation phases already done (``phases``: their result.json entries);
-- ``model.zip`` and ``replay.pkl``: the model (with every RNG state and, for a DummyVecEnv, the envs' open episodes:
-  :mod:`sb3_pearl.common.persistence`) and its replay buffer, written at the start of the first iteration after
-  every ``interval_s`` seconds of training (:class:`PeriodicCheckpoint`), and once more when training ends;
-- ``progress.csv``: the training log as it was at that checkpoint (the resumed run continues it).
+- ``model_<steps>.zip`` and ``replay_<steps>.pkl``: the model (with every RNG state and, for a DummyVecEnv, the envs'
+  open episodes: :mod:`sb3_pearl.common.persistence`) and its replay buffer, written at the start of the first
+  iteration after every ``interval_s`` seconds of training (:class:`PeriodicCheckpoint`), and once more when
+  training ends;
+- ``progress_<steps>.csv``: the training log as it was at that checkpoint (the resumed run continues it).
 
-Every file is written atomically (temporary file, then rename), the state last, so a kill at any moment leaves the
-previous checkpoint usable. Resuming from an iteration start is exact (docs/reliability.md, "Exact resume"): the
-resumed run trains the same weights, bit for bit; an evaluation phase that was cut is run again from its start
-(the meta-tests are seeded per trajectory with common random numbers, the measures and diagnostics by their own
-seeds), so the result.json metrics are those of an uninterrupted run (tests/test_reproduce_resume.py). The folder
-is deleted once result.json is written.
+Every file is written atomically (temporary file, then rename) under a name of its own, and ``state.json``, which
+names the files of the checkpoint in force, is written last; the previous checkpoint's files are deleted only
+after that. A kill at any moment therefore leaves one complete, consistent checkpoint (the model, the buffer and
+the log of the same step), and loading checks that the model's step count is the state's.
+
+Resuming from an iteration start is exact (docs/reliability.md, "Exact resume"): the resumed run trains the
+same weights, bit for bit; an evaluation phase that was cut is run again from its start (the meta-tests are seeded
+per trajectory with common random numbers, the measures and diagnostics by their own seeds), so the result.json
+metrics are those of an uninterrupted run (tests/test_reproduce_resume.py). The folder is deleted once result.json
+is written.
 """
 
 from __future__ import annotations
@@ -33,9 +38,7 @@ from sb3_pearl.common.atomic import atomic_write
 
 CHECKPOINT_DIR = "checkpoint"
 STATE_FILE = "state.json"
-MODEL_FILE = "model.zip"
-REPLAY_FILE = "replay.pkl"
-PROGRESS_SNAPSHOT = "progress.csv"
+FILE_NAMES = {"model": "model_{}.zip", "replay": "replay_{}.pkl", "progress": "progress_{}.csv"}
 DEFAULT_INTERVAL_S = 600.0  # every 10 minutes of training
 
 Interrupt = Callable[[str, int], None]  # (where, count): tests raise in it to simulate a kill
@@ -53,7 +56,7 @@ class RunCheckpoint:
         self.folder = self.run_folder / CHECKPOINT_DIR
 
     def read_state(self) -> dict[str, Any] | None:
-        """The saved state, None when there is no usable checkpoint (a state without its model is none)."""
+        """The saved state, None when there is no usable checkpoint."""
         path = self.folder / STATE_FILE
         if not path.is_file():
             return None
@@ -61,37 +64,56 @@ class RunCheckpoint:
             state = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as error:
             raise ValueError(f"{path} is unreadable ({error}): delete {self.folder} to restart the run from zero") from error
-        if not (self.folder / MODEL_FILE).is_file():
+        model = (state.get("files") or {}).get("model")
+        if not model or not (self.folder / model).is_file():
             return None
         return state
 
     def write_state(self, state: dict[str, Any]) -> None:
-        """Write the state (atomically, last)."""
+        """Write the state (atomically); then delete the files of earlier checkpoints it no longer names."""
         with atomic_write(self.folder / STATE_FILE, "w") as file:
             json.dump(state, file, indent=1, allow_nan=False)
+        keep = set((state.get("files") or {}).values()) | {STATE_FILE}
+        for path in self.folder.iterdir():
+            if path.name not in keep and not path.name.startswith("."):
+                path.unlink(missing_ok=True)
 
-    def save_model(self, model: Any, progress: Path | None) -> None:
-        """Save the model, its replay buffer (off-policy models) and a snapshot of the training log."""
+    def save_model(self, model: Any, progress: Path | None) -> dict[str, str]:
+        """
+        Save the model, its replay buffer (off-policy models) and a snapshot of the training log, under names of their own.
+
+        :return: the files written (``model``, ``replay``, ``progress``), for the state that will name them
+        """
         self.folder.mkdir(parents=True, exist_ok=True)
-        model.save(self.folder / MODEL_FILE)
+        steps = int(model.num_timesteps)
+        files = {"model": FILE_NAMES["model"].format(steps)}
+        model.save(self.folder / files["model"])
         if getattr(model, "replay_buffer", None) is not None and hasattr(model, "save_replay_buffer"):
-            model.save_replay_buffer(self.folder / REPLAY_FILE)
+            files["replay"] = FILE_NAMES["replay"].format(steps)
+            model.save_replay_buffer(self.folder / files["replay"])
         if progress is not None and progress.is_file():
-            with atomic_write(self.folder / PROGRESS_SNAPSHOT, "wb") as file:
+            files["progress"] = FILE_NAMES["progress"].format(steps)
+            with atomic_write(self.folder / files["progress"], "wb") as file:
                 file.write(progress.read_bytes())
+        return files
 
-    def load_model(self, algo_cls: Any, env: Any, device: str = "auto") -> Any:
+    def load_model(self, state: dict[str, Any], algo_cls: Any, env: Any, device: str = "auto") -> Any:
         """The checkpoint's model on ``env`` (envs' episodes and RNG streams restored), with its replay buffer."""
-        model = algo_cls.load(self.folder / MODEL_FILE, env=env, device=device)
-        replay = self.folder / REPLAY_FILE
-        if replay.is_file() and hasattr(model, "load_replay_buffer"):
-            model.load_replay_buffer(replay)
+        files = state["files"]
+        model = algo_cls.load(self.folder / files["model"], env=env, device=device)
+        if "replay" in files and hasattr(model, "load_replay_buffer"):
+            model.load_replay_buffer(self.folder / files["replay"])
+        if int(model.num_timesteps) != int(state["num_timesteps"]):
+            raise ValueError(
+                f"{self.folder}: the model is at {model.num_timesteps} steps, the state says {state['num_timesteps']}: "
+                f"delete {self.folder} to restart the run from zero"
+            )
         return model
 
-    def progress_snapshot(self) -> Path | None:
+    def progress_snapshot(self, state: dict[str, Any]) -> Path | None:
         """The training log saved with the checkpoint, if any."""
-        path = self.folder / PROGRESS_SNAPSHOT
-        return path if path.is_file() else None
+        name = (state.get("files") or {}).get("progress")
+        return self.folder / name if name and (self.folder / name).is_file() else None
 
     def remove(self) -> None:
         """Delete the checkpoint (the run is complete)."""
@@ -127,7 +149,7 @@ class PeriodicCheckpoint(BaseCallback):
     :param checkpoint: the run's checkpoint folder
     :param progress: the run's training log (snapshotted with each checkpoint)
     :param interval_s: seconds of training between checkpoints
-    :param on_save: called after each save (the runner writes the state there)
+    :param on_save: called with the files of each save (the runner writes the state naming them)
     :param interrupt: test hook, called as ``interrupt("step", n)`` after every env step and
         ``interrupt("iteration", n)`` after every iteration-start checkpoint
     """
@@ -137,7 +159,7 @@ class PeriodicCheckpoint(BaseCallback):
         checkpoint: RunCheckpoint,
         progress: Path,
         interval_s: float,
-        on_save: Callable[[], None],
+        on_save: Callable[[dict[str, str]], None],
         interrupt: Interrupt | None = None,
     ) -> None:
         super().__init__()
@@ -157,8 +179,7 @@ class PeriodicCheckpoint(BaseCallback):
     def _on_rollout_start(self) -> None:
         if time.monotonic() - self._last < self.interval_s or self.model.num_timesteps == 0:
             return
-        self.checkpoint.save_model(self.model, self.progress)
-        self.on_save()
+        self.on_save(self.checkpoint.save_model(self.model, self.progress))
         self._last = time.monotonic()
         self._iterations += 1
         if self.interrupt is not None:

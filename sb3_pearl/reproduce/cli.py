@@ -230,7 +230,7 @@ def _run_one(args: argparse.Namespace) -> int:
     import signal
 
     from sb3_pearl.reproduce.layout import RunKey, run_dir
-    from sb3_pearl.reproduce.ownership import LOCKED_EXIT, RunLockedError, run_lock
+    from sb3_pearl.reproduce.ownership import LOCKED_EXIT, RunLockedError, die_with_parent, run_lock
     from sb3_pearl.reproduce.runner import run_one
 
     def stop(signum: int, frame: Any) -> None:
@@ -239,6 +239,7 @@ def _run_one(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, stop)  # the parent's stop: like Ctrl-C, the checkpoint on disk is kept
     folder = run_dir(args.results_dir, RunKey(args.experiment, args.family, args.variant, args.seed))
     try:
+        die_with_parent()
         with run_lock(folder):
             run_one(args.experiment, args.family, args.variant, args.seed, args.budget, args.results_dir)
     except RunLockedError as error:

@@ -170,7 +170,8 @@ class LearningCurve(BaseCallback):
         self.eval_seed = eval_seed
         self.competence = competence
         self.rows = [row for row in read_curve(path) if row["env_steps"] <= resume_at]
-        self.next_at = (int(self.rows[-1]["env_steps"]) if self.rows else 0) + settings["every"]
+        last = int(self.rows[-1]["env_steps"]) if self.rows else 0
+        self.next_at = (last // settings["every"] + 1) * settings["every"]  # the uninterrupted run's grid
 
     def _point(self) -> None:
         steps = int(self.model.num_timesteps)

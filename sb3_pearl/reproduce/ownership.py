@@ -6,8 +6,9 @@ exits, so a lock left by a dead process is never mistaken for a live one. Two ``
 same results folder therefore share the work: a run another process owns is skipped (:func:`lock_holder`), and a
 child that loses the race exits with :data:`LOCKED_EXIT` without touching the run's files.
 
-:func:`die_with_parent` makes a child receive SIGTERM when its parent dies, even by SIGKILL (Linux; elsewhere the
-parent's own SIGINT / SIGTERM handling still stops its children, ``scheduler.run_experiment``).
+:func:`die_with_parent`, called first thing by ``run-one``, makes a child receive SIGTERM when its parent dies, even by
+SIGKILL (Linux; elsewhere the parent's own SIGINT / SIGTERM handling still stops its children,
+``scheduler.run_experiment``).
 """
 
 from __future__ import annotations
@@ -18,10 +19,12 @@ import fcntl
 import os
 import signal
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 LOCK_FILE = "run.lock"
+PARENT_PID_ENV = "SB3_PEARL_PARENT_PID"  # set by `reproduce run` for its children
 LOCKED_EXIT = 75  # EX_TEMPFAIL: the run is owned by another process; nothing was done
 
 
@@ -51,21 +54,30 @@ def lock_holder(folder: str | Path) -> int | None:
 
 
 @contextlib.contextmanager
-def run_lock(folder: str | Path) -> Iterator[None]:
+def run_lock(folder: str | Path, wait_s: float = 2.0) -> Iterator[None]:
     """
-    Own the run in ``folder`` for the duration of the block, or raise :class:`RunLockedError` at once.
+    Own the run in ``folder`` for the duration of the block, or raise :class:`RunLockedError` after ``wait_s``.
+
+    The short wait covers another command's :func:`lock_holder` probe, which holds the lock for an instant.
 
     :param folder: the run folder (created if missing)
+    :param wait_s: seconds to keep trying
     """
     path = Path(folder) / LOCK_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     file = open(path, "a+")  # noqa: SIM115  (held open: the lock lives as long as the file descriptor)
     try:
-        try:
-            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            file.seek(0)
-            raise RunLockedError(f"{folder} is being run by another process (pid {file.read().strip() or '?'})") from None
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    file.seek(0)
+                    owner = file.read().strip() or "?"
+                    raise RunLockedError(f"{folder} is being run by another process (pid {owner})") from None
+                time.sleep(0.1)
         file.seek(0)
         file.truncate()
         file.write(f"{os.getpid()}\n")
@@ -76,7 +88,13 @@ def run_lock(folder: str | Path) -> Iterator[None]:
 
 
 def die_with_parent() -> None:
-    """In a child, before exec: receive SIGTERM when the parent process dies (Linux ``prctl(PR_SET_PDEATHSIG)``)."""
+    """
+    In a child of ``reproduce run``: receive SIGTERM when the parent process dies (Linux ``prctl(PR_SET_PDEATHSIG)``),
+    and stop at once if it died before this call (the parent's pid, :data:`PARENT_PID_ENV`, is no longer ours).
+    """
+    expected = os.environ.get(PARENT_PID_ENV)
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError):
             ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # 1 = PR_SET_PDEATHSIG
+    if expected is not None and expected.isdigit() and os.getppid() != int(expected):
+        raise KeyboardInterrupt  # the parent is gone: nothing was started

@@ -157,38 +157,51 @@ def measure_results(
     :param echo: progress output
     :return: the result files rewritten
     """
-    from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.experiments.budgets import algo_class
-    from sb3_pearl.reproduce.layout import MODEL_FILE, RESULT_FILE, read_result, write_json_atomic
+    from sb3_pearl.reproduce.layout import RESULT_FILE
+    from sb3_pearl.reproduce.ownership import RunLockedError, run_lock
 
     root = Path(results_dir)
     if not root.is_dir():
         raise ValueError(f"results dir {root} does not exist or is not a folder")
-    written = []
+    written: list[Path] = []
     for path in sorted(root.rglob(RESULT_FILE)):
-        result = read_result(path)
-        if experiments is not None and result.get("experiment") not in experiments:
-            continue
-        section = result.get("prior_critic")
-        if section is not None and "error" not in section and not force:
-            continue
-        experiment = get_experiment(result["experiment"])
-        family = experiment.family(result["family"])
-        algo = experiment.variant(result["variant"]).algo
-        model = algo_class(algo).load(path.parent / MODEL_FILE, device="cpu")  # type: ignore[attr-defined]
-        meta = result["meta_test"]
-        result["prior_critic"] = compute_prior_measures(
-            model,
-            algo,
-            family,
-            dict(family.env_kwargs),
-            result["budget"]["meta_test"],
-            list(meta["tasks"]),
-            meta["summary"][0],
-            result["eval_seed"],
-            result["seed"],
-        )
-        write_json_atomic(path, result)
-        written.append(path)
-        echo(f"measured {path}")
+        try:
+            with run_lock(path.parent, wait_s=0.0):  # a run being (re)trained is left to its owner
+                if _measure_one(path, experiments, force):
+                    written.append(path)
+                    echo(f"measured {path}")
+        except RunLockedError as error:
+            echo(f"skip {path}: {error}")
     return written
+
+
+def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> bool:
+    """Measure one run, under its lock; its result.json is read here, so nothing written before is overwritten."""
+    from sb3_pearl.experiments import get_experiment
+    from sb3_pearl.experiments.budgets import algo_class
+    from sb3_pearl.reproduce.layout import MODEL_FILE, read_result, write_json_atomic
+
+    result = read_result(path)
+    if experiments is not None and result.get("experiment") not in experiments:
+        return False
+    section = result.get("prior_critic")
+    if section is not None and "error" not in section and not force:
+        return False
+    experiment = get_experiment(result["experiment"])
+    family = experiment.family(result["family"])
+    algo = experiment.variant(result["variant"]).algo
+    model = algo_class(algo).load(path.parent / MODEL_FILE, device=result.get("device", "cpu"))  # type: ignore[attr-defined]
+    meta = result["meta_test"]
+    result["prior_critic"] = compute_prior_measures(
+        model,
+        algo,
+        family,
+        dict(family.env_kwargs),
+        result["budget"]["meta_test"],
+        list(meta["tasks"]),
+        meta["summary"][0],
+        result["eval_seed"],
+        result["seed"],
+    )
+    write_json_atomic(path, result)
+    return True

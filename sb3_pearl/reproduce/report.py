@@ -479,7 +479,11 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         if plot_seeds(experiment, group, Path(figures_dir) / seeds_name, title=title):
             out += [f"![per-seed rates, {experiment_name} / {family}]({figures_link.rstrip('/')}/{seeds_name})", ""]
     for experiment in EXPERIMENTS.values():
-        by_family = {family: group for (name, _, family), group in groups.items() if name == experiment.name}
+        by_family = {  # the rule is written for the experiment's own budget: other presets' runs are not pooled in
+            family: group
+            for (name, budget, family), group in groups.items()
+            if name == experiment.name and budget == experiment.budget
+        }
         selection = selection_table(experiment, by_family) if experiment.name == "prior-critic" else []
         if selection:
             out += [f"### {experiment.title}: the selection", "", *selection, ""]

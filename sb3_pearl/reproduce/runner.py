@@ -198,7 +198,7 @@ def run_one(
     cpu_start = cpu_info()
     checkpoint = RunCheckpoint(folder)
     state = checkpoint.read_state()
-    identity = json_value({"budget_preset": budget_preset, "model_kwargs": kwargs, "n_timesteps": budget["n_timesteps"]})
+    identity = json_value({"budget_preset": budget_preset, "budget": budget, "model_kwargs": kwargs})
     if state is not None and state.get("identity") != identity:
         raise ValueError(
             f"{checkpoint.folder} was written by a run with other settings ({state.get('identity')}): "
@@ -208,11 +208,19 @@ def run_one(
     phases: dict[str, Any] = dict(state["phases"]) if state is not None else {}
     segment_cpu, segment_wall = time.process_time(), time.time()
 
-    def save_state(phase: str, model: Any) -> None:
+    files: dict[str, str] = dict(state["files"]) if state is not None else {}
+
+    def save_state(phase: str, model: Any, written: dict[str, str] | None = None) -> None:
+        if written is not None:
+            files.clear()
+            files.update(written)
+        if phase == "train":  # the training time of every segment so far (a resumed run adds its own)
+            phases["train_s"] = train_s_before + time.time() - train_start
         checkpoint.write_state(
             {
                 "identity": identity,
                 "phase": phase,
+                "files": files,
                 "num_timesteps": int(model.num_timesteps),
                 "spent": {
                     "cpu_s": spent["cpu_s"] + time.process_time() - segment_cpu,
@@ -229,20 +237,20 @@ def run_one(
         model = algo(budget["policy"], env, seed=seed, verbose=0, device="auto", **model_kwargs(kwargs))
         model.set_logger(csv_logger_continuing(folder, None))
     else:
-        model = checkpoint.load_model(algo, env)
-        model.set_logger(csv_logger_continuing(folder, checkpoint.progress_snapshot()))
+        model = checkpoint.load_model(state, algo, env)
+        model.set_logger(csv_logger_continuing(folder, checkpoint.progress_snapshot(state)))
         log(f"[{key.label()}] resumed at {model.num_timesteps} steps ({state['phase']}), {sorted(phases)} done", flush=True)
     if state is None or state["phase"] == "train":
         remaining = budget["n_timesteps"] - model.num_timesteps
         log(f"[{key.label()}] learn {remaining} of {budget['n_timesteps']} steps", flush=True)
-        start = time.time()
-        on_save = lambda: save_state("train", model)  # noqa: E731
+        train_start, train_s_before = time.time(), float(phases.get("train_s", 0.0))
+        on_save = lambda written: save_state("train", model, written)  # noqa: E731
         callbacks: list[BaseCallback] = [PeriodicCheckpoint(checkpoint, progress, checkpoint_interval_s, on_save, interrupt)]
         curve_env = None
         if "curve" in budget:  # the learning curve on the held-out tasks (docs/reproduce.md, "Learning curves")
             curve_env = gym.make(family.env_id, **env_kwargs)
             curve_tasks = _held_out_tasks(
-                curve_env, budget["meta_test"]["n_tasks"], experiment.eval_seed, list(model.train_tasks), key.label()
+                curve_env, budget["curve"]["n_tasks"], experiment.eval_seed, list(model.train_tasks), key.label()
             )
             resume_at = int(state["num_timesteps"]) if state is not None else 0
             callbacks.append(
@@ -260,10 +268,9 @@ def run_one(
             model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=state is None)
         if curve_env is not None:
             curve_env.close()
-        phases["train_s"] = phases.get("train_s", 0.0) + time.time() - start
+        phases["train_s"] = train_s_before + time.time() - train_start
         model.save(folder / MODEL_FILE)
-        checkpoint.save_model(model, progress)  # with the replay buffer the diagnostics read
-        save_state("evaluate", model)
+        save_state("evaluate", model, checkpoint.save_model(model, progress))  # with the buffers the diagnostics read
     model.logger.close()
     env.close()
     train_tasks = list(getattr(model, "train_tasks", []) or [])

@@ -31,7 +31,7 @@ from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.reproduce.checkpoint import RunCheckpoint
 from sb3_pearl.reproduce.layout import LOG_FILE, RESULT_FILE, RunKey, run_dir
-from sb3_pearl.reproduce.ownership import LOCKED_EXIT, die_with_parent, lock_holder
+from sb3_pearl.reproduce.ownership import LOCKED_EXIT, PARENT_PID_ENV, lock_holder
 from sb3_pearl.reproduce.runner import existing_result, run_kwargs
 
 #: environment of every run, whatever the backend: one thread per run (torch also gets ``set_num_threads(1)``)
@@ -129,6 +129,7 @@ def select_pending(
     for key in runs:
         folder = run_dir(results_dir, key)
         if not force and existing_result(folder, budget_preset) is not None:
+            RunCheckpoint(folder).remove()  # a kill between result.json and the clean-up may have left one
             summary.skipped.append(key)
             echo(f"skip {key.label()}: {folder / RESULT_FILE} exists (--force reruns it)")
             continue
@@ -265,8 +266,7 @@ def run_experiment(
                     child_command(key, budget_preset, results_dir),
                     stdout=log,
                     stderr=subprocess.STDOUT,
-                    env=env,
-                    preexec_fn=die_with_parent,
+                    env={**env, PARENT_PID_ENV: str(os.getpid())},  # the child dies with this process (ownership.py)
                 )
                 running[key] = (process, time.time(), log)
             finished = [key for key, (process, _, _) in running.items() if process.poll() is not None]
@@ -291,8 +291,9 @@ def run_experiment(
         summary.interrupted.extend(running)
         echo(
             f"interrupted: {len(running)} run(s) stopped ({', '.join(key.label() for key in running) or 'none'}), "
-            f"{len(queue)} not started; run the same command again to complete them (each stopped run resumes from "
-            "its last checkpoint, docs/reproduce.md)"
+            f"{len(queue)} not started; run the same command"
+            + (" without --force" if force else "")
+            + " again to complete them (each stopped run resumes from its last checkpoint, docs/reproduce.md)"
         )
     finally:
         if previous is not None:
