@@ -234,8 +234,6 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if args.paths:
         from sb3_pearl.common.diagnostics.paths import check_position_observation
 
-        if min(args.paths_tasks, args.paths_z0) < 1:
-            p.error("--paths-tasks and --paths-z0 must be >= 1")
         try:
             check_position_observation(model)  # before the diagnostics' minute of rollouts
         except ValueError as error:

@@ -397,4 +397,4 @@ def test_cli_draws_the_paths(trained: PEARLPlus, tmp_path: Path, capsys: pytest.
     assert out.stat().st_size > 1000 and "Violations at k = 0" in capsys.readouterr().out
     with pytest.raises(SystemExit):  # refused before the diagnostics run
         diagnose_main([str(tmp_path / "model.zip"), "--env-id", ENV_ID, "--paths", str(out), "--paths-z0", "0"])
-    assert "--paths-tasks and --paths-z0 must be >= 1" in capsys.readouterr().err
+    assert "argument --paths-z0: must be an integer >= 1, got 0" in capsys.readouterr().err

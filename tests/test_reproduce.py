@@ -196,7 +196,15 @@ def test_run_refuses_a_result_of_another_budget(tmp_path: Path, capsys: pytest.C
 
     folder = run_folder(tmp_path, "alpha-0")
     folder.mkdir(parents=True)
-    write_json_atomic(folder / "result.json", {"budget_preset": "cpu"})
+    summary = [{"k": 0, "n": 1, "return_mean": -1.0, "violation_rate": 0.0}]
+    keys = {
+        "experiment": "safe-point",
+        "family": "safe-point",
+        "variant": "alpha-0",
+        "seed": 0,
+        "meta_test": {"summary": summary},
+    }
+    write_json_atomic(folder / "result.json", {**keys, "budget_preset": "cpu"})
     assert main(["run", *RUN_ARGS[:-1], "--results-dir", str(tmp_path)]) == 2
     assert "was run with budget preset 'cpu', not 'smoke'" in capsys.readouterr().err
     assert sorted(p.name for p in folder.iterdir()) == ["result.json"]  # atomic write left no temporary file
@@ -315,7 +323,15 @@ def test_preset_entry_validation() -> None:
 # Specs
 # ----------------------------------------------------------------------------------------------
 def test_experiments_are_declared() -> None:
-    assert set(EXPERIMENTS) == {"table1", "table2", "table3", "safe-point"}
+    assert set(EXPERIMENTS) == {
+        "table1",
+        "table2",
+        "table3",
+        "safe-point",
+        "prior-critic",
+        "prior-critic-walker",
+        "pearl-reference",
+    }
     table1 = get_experiment("table1")
     assert {f.name for f in table1.families} == {"walker2d-vel", "ant3d-vel", "highway-merge"}
     assert {v.algo for v in table1.variants} == {"pearl", "pearlplus", "finetune", "maml"}
