@@ -352,7 +352,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--labels", nargs="+", default=None, help="legend labels, one per run")
     parser.add_argument("--title", default="", help="figure title")
     args = parser.parse_args(argv)
-    runs = load_runs(args.runs, args.labels)
+    if args.labels is not None and len(args.labels) != len(args.runs):
+        parser.error(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs (give one per run)")
+    if args.output is not None and not Path(args.output).resolve().parent.is_dir():
+        parser.error(f"-o/--output: the folder of {args.output} does not exist")
+    try:  # bad runs: one line naming the path, no traceback
+        runs = load_runs(args.runs, args.labels)
+    except (FileNotFoundError, ValueError) as error:
+        parser.error(str(error))
     kinds = KINDS if args.kind == "all" else (args.kind,)
     output = args.output or default_output(args.runs[0])
     for path in plot_all(runs, output, kinds, args.title):

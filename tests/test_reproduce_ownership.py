@@ -187,3 +187,20 @@ def test_seed_ranges_and_large_plans_are_bounded(capsys: pytest.CaptureFixture[s
     with pytest.raises(SystemExit) as exit_info:
         main(["run", "safe-point", "--jobs", "0"])
     assert exit_info.value.code == 2 and "argument --jobs: must be an integer >= 1, got 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["/nonexistent"], "/nonexistent not found"),
+        (["a", "--labels", "x", "y"], "--labels: 2 labels for 1 runs"),
+        (["a", "-o", "/nonexistent/dir/x.png"], "-o/--output: the folder of /nonexistent/dir/x.png does not exist"),
+    ],
+)
+def test_plots_flags_are_one_line_errors(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from sb3_pearl.plots import main as plots_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        plots_main(argv)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and message in lines[-1] and "Traceback" not in "\n".join(lines)
