@@ -31,6 +31,8 @@ from typing import Any
 
 import yaml
 
+from sb3_pearl.registry import ACTIVATIONS, algorithm_class, constructor_kwargs
+
 PRESETS_DIR = Path(__file__).resolve().parent / "presets"
 PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
 ENTRY_KEYS = frozenset(
@@ -46,7 +48,6 @@ META_TEST_DEFAULTS: dict[str, Any] = {"n_adapt": 5, "n_repeats": 1, "determinist
 COMPETENCE_DEFAULTS: dict[str, Any] = {"n_tasks": 10, "n_repeats": 1, "n_adapt": 2, "deterministic": True}
 # Presets whose meta-test must measure k = 0 with >= 10 prior draws per task and >= 200 k = 0 trajectories.
 STATISTICS_FLOOR: dict[str, tuple[int, int]] = {"cpu": (10, 200), "paper": (10, 200)}
-ACTIVATIONS = ("relu", "tanh", "elu", "leaky_relu")
 
 
 @functools.cache
@@ -190,14 +191,7 @@ def check_statistics_floor(meta_test: dict[str, Any], floor: tuple[int, int], wh
         )
 
 
-def algo_class(algo: str) -> type:
-    """The algorithm class of a zoo name (``pearl`` -> PEARL, ...)."""
-    from sb3_pearl import MAML, PEARL, FineTune, PEARLPlus
-
-    classes: dict[str, type] = {"pearl": PEARL, "pearlplus": PEARLPlus, "finetune": FineTune, "maml": MAML}
-    if algo not in classes:
-        raise ValueError(f"unknown algorithm {algo!r}: choose among {sorted(classes)}")
-    return classes[algo]
+algo_class = algorithm_class  # the harness's name for it
 
 
 def check_constructor_kwargs(algo: str, kwargs: dict[str, Any], where: str) -> None:
@@ -208,9 +202,7 @@ def check_constructor_kwargs(algo: str, kwargs: dict[str, Any], where: str) -> N
     :param kwargs: the kwargs
     :param where: for the message
     """
-    from sb3_pearl.zoo import constructor_kwargs
-
-    cls = algo_class(algo)
+    cls = algorithm_class(algo)
     accepted = constructor_kwargs(cls) - {"policy"}
     unknown = sorted(set(kwargs) - accepted)
     if unknown:
@@ -220,7 +212,7 @@ def check_constructor_kwargs(algo: str, kwargs: dict[str, Any], where: str) -> N
         raise ValueError(f"{where}: policy_kwargs must be a mapping (e.g. {{net_arch: [128, 128]}}), got {policy_kwargs!r}")
     activation = (policy_kwargs or {}).get("activation_fn")
     if activation is not None and activation not in ACTIVATIONS:
-        raise ValueError(f"{where}: policy_kwargs.activation_fn must be one of {ACTIVATIONS}, got {activation!r}")
+        raise ValueError(f"{where}: policy_kwargs.activation_fn must be one of {tuple(ACTIVATIONS)}, got {activation!r}")
 
 
 def model_kwargs(kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -230,13 +222,10 @@ def model_kwargs(kwargs: dict[str, Any]) -> dict[str, Any]:
     :param kwargs: kwargs as written in a preset
     :return: a copy ready for the algorithm's constructor
     """
-    from torch import nn
-
-    classes = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU}
     result = copy.deepcopy(kwargs)
     policy_kwargs = result.get("policy_kwargs")
     if isinstance(policy_kwargs, dict) and isinstance(policy_kwargs.get("activation_fn"), str):
-        policy_kwargs["activation_fn"] = classes[policy_kwargs["activation_fn"]]
+        policy_kwargs["activation_fn"] = ACTIVATIONS[policy_kwargs["activation_fn"]]
     return result
 
 

@@ -20,11 +20,13 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from sb3_pearl.registry import ALGORITHM_NAMES
+
 Metric = Literal["violation", "return"]
 Direction = Literal["lower", "higher", "equal", "not_lower", "not_higher"]
 METRICS: tuple[str, ...] = ("violation", "return")
 DIRECTIONS: tuple[str, ...] = ("lower", "higher", "equal", "not_lower", "not_higher")
-ALGOS: tuple[str, ...] = ("pearl", "pearlplus", "finetune", "maml")
+ALGOS: tuple[str, ...] = ALGORITHM_NAMES
 # Default equivalence margin of the violation rate (absolute, 5 percentage points).
 VIOLATION_MARGIN = 0.05
 _NAME = re.compile(r"^[a-z0-9][a-z0-9.+_-]*$")

@@ -14,10 +14,11 @@ from typing import Any
 from sb3_pearl.experiments.budgets import PRESETS, load_budget, preset_entries
 from sb3_pearl.experiments.families import FAMILIES
 from sb3_pearl.experiments.spec import Family
+from sb3_pearl.registry import ACTIVATIONS
 from sb3_pearl.zoo.usage import UsageError
 
 # Activation names of the presets -> the expression rl_zoo3 evaluates in a policy_kwargs string (torch.nn as nn).
-ACTIVATION_EXPRESSIONS = {"relu": "nn.ReLU", "tanh": "nn.Tanh", "elu": "nn.ELU", "leaky_relu": "nn.LeakyReLU"}
+ACTIVATION_EXPRESSIONS = {name: f"nn.{cls.__name__}" for name, cls in ACTIVATIONS.items()}  # the zoo's string form
 
 
 def env_family(env_id: str) -> Family | None:

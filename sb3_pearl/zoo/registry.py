@@ -7,7 +7,6 @@ hyperparameter samplers in ``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER`` (``-o
 
 from __future__ import annotations
 
-import inspect
 from typing import Any
 
 import optuna
@@ -18,35 +17,11 @@ from torch import nn
 
 import sb3_pearl
 from sb3_pearl.pearl import PEARL, PEARLPlus
-
-# Set by the zoo itself when it builds the model: not allowed in a YAML entry.
-ZOO_SET_KWARGS = frozenset({"env", "tensorboard_log", "seed", "verbose", "device", "_init_setup_model"})
-# Constructor kwargs a class refuses although its parent takes them (PEARL is PEARL+ without the prior term).
-REFUSED_KWARGS: dict[type, frozenset[str]] = {
-    PEARL: frozenset({"prior_coef", "prior_critic", "prior_critic_arch", "prior_n_critics"}),
-}
+from sb3_pearl.registry import ZOO_SET_KWARGS, constructor_kwargs
 
 # Optuna categorical choices (names are stored in the study, converted by convert_pearl_params)
 NET_ARCHS: dict[str, list[int]] = {"small": [64, 64], "medium": [256, 256], "big": [300, 300, 300]}
 ENCODER_ARCHS: dict[str, list[int]] = {"small": [64, 64], "medium": [200, 200], "big": [200, 200, 200]}
-
-
-def constructor_kwargs(algo_class: type) -> set[str]:
-    """
-    Keyword arguments ``algo_class(...)`` takes, following ``**kwargs`` up the MRO.
-
-    :param algo_class: an algorithm class
-    :return: the accepted names (without the ones the zoo sets itself)
-    """
-    accepted: set[str] = set()
-    for cls in algo_class.__mro__:
-        if "__init__" not in vars(cls):
-            continue
-        params = inspect.signature(vars(cls)["__init__"]).parameters.values()
-        accepted |= {p.name for p in params if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self"}
-        if not any(p.kind == p.VAR_KEYWORD for p in params):
-            break
-    return accepted - ZOO_SET_KWARGS - REFUSED_KWARGS.get(algo_class, frozenset())
 
 
 def convert_pearl_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
@@ -139,7 +114,6 @@ def register_algos() -> dict[str, type[BaseAlgorithm]]:
 __all__ = [
     "ENCODER_ARCHS",
     "NET_ARCHS",
-    "REFUSED_KWARGS",
     "ZOO_SET_KWARGS",
     "constructor_kwargs",
     "convert_pearl_params",

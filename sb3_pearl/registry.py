@@ -1,0 +1,77 @@
+"""The one registry of the project's algorithms and activation names (everything that maps a name to a class).
+
+- :data:`ALGORITHM_NAMES` and :func:`algorithm_class`: the zoo names (``pearl``, ``pearlplus``, ``finetune``,
+  ``maml``), used by ``train.py`` / ``enjoy.py`` (``rl_zoo3.ALGOS``, filled by :func:`sb3_pearl.zoo.register_algos`),
+  the reproduction harness and its presets;
+- :func:`constructor_kwargs`: the keyword arguments an algorithm's constructor takes (YAML entries, presets and
+  variant overrides are checked against it);
+- :data:`ACTIVATIONS`: the activation names a preset or a YAML entry may give for ``policy_kwargs.activation_fn``.
+
+It imports the algorithms and nothing else of the project's tools, so ``experiments/`` (data and declarations),
+``zoo/`` and ``reproduce/`` all read it without importing each other (tests/test_layout.py).
+"""
+
+from __future__ import annotations
+
+import inspect
+
+from torch import nn
+
+ALGORITHM_NAMES: tuple[str, ...] = ("pearl", "pearlplus", "finetune", "maml")
+ACTIVATIONS: dict[str, type[nn.Module]] = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU}
+# Set by the zoo and the harness themselves when they build a model: not allowed in a YAML entry or a preset.
+ZOO_SET_KWARGS = frozenset({"env", "tensorboard_log", "seed", "verbose", "device", "_init_setup_model"})
+
+
+def algorithm_classes() -> dict[str, type]:
+    """Zoo name -> algorithm class (imported on first use: the algorithms import torch and the envs)."""
+    from sb3_pearl.finetune import FineTune
+    from sb3_pearl.maml import MAML
+    from sb3_pearl.pearl import PEARL, PEARLPlus
+
+    return {"pearl": PEARL, "pearlplus": PEARLPlus, "finetune": FineTune, "maml": MAML}
+
+
+def algorithm_class(name: str) -> type:
+    """
+    The algorithm class of a zoo name (``pearl`` -> PEARL, ...).
+
+    :param name: ``pearl``, ``pearlplus``, ``finetune`` or ``maml``
+    :return: the class
+    """
+    classes = algorithm_classes()
+    if name not in classes:
+        raise ValueError(f"unknown algorithm {name!r}: choose among {sorted(classes)}")
+    return classes[name]
+
+
+def refused_kwargs(algo_class: type) -> frozenset[str]:
+    """Constructor kwargs a class refuses although its parent takes them (PEARL is PEARL+ without the prior term)."""
+    from sb3_pearl.pearl import PEARL
+
+    return (
+        frozenset({"prior_coef", "prior_critic", "prior_critic_arch", "prior_n_critics"})
+        if algo_class is PEARL
+        else frozenset()
+    )
+
+
+def constructor_kwargs(algo_class: type) -> set[str]:
+    """
+    Keyword arguments ``algo_class(...)`` takes, following ``**kwargs`` up the MRO.
+
+    :param algo_class: an algorithm class
+    :return: the accepted names (without the ones the zoo and the harness set themselves)
+    """
+    accepted: set[str] = set()
+    for cls in algo_class.__mro__:
+        if "__init__" not in vars(cls):
+            continue
+        params = inspect.signature(vars(cls)["__init__"]).parameters.values()
+        accepted |= {p.name for p in params if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self"}
+        if not any(p.kind == p.VAR_KEYWORD for p in params):
+            break
+    return accepted - ZOO_SET_KWARGS - refused_kwargs(algo_class)
+
+
+__all__ = ["ACTIVATIONS", "ALGORITHM_NAMES", "ZOO_SET_KWARGS", "algorithm_class", "algorithm_classes", "constructor_kwargs"]
