@@ -58,7 +58,7 @@ def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     ],
 )
 def test_an_interrupted_run_resumes_to_the_same_metrics(
-    where: str, count: int, phase: str, uninterrupted: dict[str, Any], tmp_path: Path
+    where: str, count: int, phase: str, uninterrupted: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     with pytest.raises(Killed):
         run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at(where, count))
@@ -70,9 +70,13 @@ def test_an_interrupted_run_resumes_to_the_same_metrics(
         assert state["num_timesteps"] == 240 and state["spent"]["cpu_s"] > 0
     else:
         assert state["num_timesteps"] == 400 and "meta_test" not in state["phases"]
-    # `reproduce status` sees the resumable run, with its progress.
+    # `reproduce status` sees the resumable run, with its progress and the CPU time spent.
     assert main(["status", "safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants",
                  "alpha-0.1", "--results-dir", str(tmp_path)]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    progress = "train 240/400 steps (60%)" if phase == "train" else "evaluate ("
+    assert "safe-point safe-point alpha-0.1 seed0" in out and "resumable" in out and progress in out, out
+    assert "0 finished, 1 resumable, 0 missing" in out
     resumed = run_one(*RUN, tmp_path, verbose=0)
     assert _metrics(resumed) == _metrics(uninterrupted)
     assert json.loads((folder / RESULT_FILE).read_text())["meta_test"]["summary"] == uninterrupted["meta_test"]["summary"]
