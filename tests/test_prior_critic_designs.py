@@ -221,3 +221,37 @@ def test_the_box_conservative_gap_by_hand() -> None:
             expected = np.log(np.mean(np.exp(terms)))
             assert float(got[c, i, 0]) == pytest.approx(expected, rel=1e-5)
     assert got.shape == (2, 3, 1)
+
+
+def _run(rel: float, rank: float, gap_return: float, gap_violation: float) -> dict[str, Any]:
+    return {
+        "prior_critic": {
+            "calibration": {"bias": 0.0, "relative_error": rel, "rank_corr": rank},
+            "prior_optimality": {"train": {"gap": {"return": gap_return, "violation": gap_violation}}},
+        }
+    }
+
+
+def test_the_selection_rule_as_written() -> None:
+    """docs/pearl.md: calibrated designs first (rel. error < 0.25, rank corr. > 0.5), ranked by the train return gap,
+    ties within 0.5 by the lower violation gap; fewer than two calibrated: the best of the others fill the places."""
+    from sb3_pearl.reproduce.prior_report import rank_designs, select, selection_table
+
+    def group(**designs: tuple[float, float, float, float]) -> dict[str, Any]:
+        return {f"alpha-0.1-{name}": {0: _run(*values)} for name, values in designs.items()}
+
+    groups = {
+        "safe-point": group(
+            twin=(0.5, 0.2, -1.0, 0.30),  # best return, not calibrated
+            zfree=(0.2, 0.6, -3.0, 0.20),  # calibrated
+            cql5=(0.1, 0.7, -3.3, 0.05),  # calibrated, within 0.5 of zfree and fewer violations: ranks before it
+            ensemble5=(0.3, 0.9, -2.0, 0.0),  # rank fine, error too large: not calibrated
+        )
+    }
+    rows = rank_designs(PRIOR_CRITIC, groups)
+    assert [r.design for r in rows] == ["twin", "ensemble5", "cql5", "zfree"]
+    assert [r.design for r in select(rows)] == ["cql5", "zfree"]  # the two calibrated ones, whatever their rank
+    groups["safe-point"].pop("alpha-0.1-zfree")
+    assert [r.design for r in select(rank_designs(PRIOR_CRITIC, groups))] == ["cql5", "twin"]  # topped up
+    text = "\n".join(selection_table(PRIOR_CRITIC, groups))
+    assert "nothing is selected until every design has its runs" in text and "**selected**" not in text

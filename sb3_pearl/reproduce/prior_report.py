@@ -194,6 +194,8 @@ def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list
     if not rows:
         return []
     chosen = {r.design for r in select(rows)}
+    full = len(experiment.families) * len(experiment.seeds)
+    partial = [r.design for r in rows if r.n_runs < full] + [d for d in DESIGNS if d not in {r.design for r in rows}]
     lines = [
         "| rank | design | median rel. error | median rank corr. | calibrated | mean return gap, train "
         "| mean violation gap, train (points) | runs | selected |",
@@ -203,11 +205,14 @@ def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list
         lines.append(
             f"| {rank} | {row.design} ({DESIGNS[row.design][0]}) | {_fmt(row.relative_error)} | {_fmt(row.rank_corr)} | "
             f"{'yes' if row.calibrated else 'no'} | {_fmt(row.return_gap, 1)} | {_fmt(row.violation_gap, 1, 100)} | "
-            f"{row.n_runs} | {'**selected**' if row.design in chosen else ''} |"
+            f"{row.n_runs} | {('leading' if partial else '**selected**') if row.design in chosen else ''} |"
         )
-    full = len(experiment.families) * len(experiment.seeds)
-    partial = [r.design for r in rows if r.n_runs < full]
-    note = f" Incomplete ({full} runs each when complete): {', '.join(partial)}." if partial else ""
+    note = (
+        f" Incomplete ({full} runs each when complete; missing or part-way: {', '.join(partial)}): the ranking is "
+        "provisional and nothing is selected until every design has its runs."
+        if partial
+        else ""
+    )
     return [
         'Selection (docs/pearl.md, "The selection rule", written before the runs; training tasks only, alpha 0.1, '
         f"both crash penalties pooled).{note}",

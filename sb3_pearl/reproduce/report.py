@@ -486,7 +486,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         }
         selection = selection_table(experiment, by_family) if experiment.name == "prior-critic" else []
         if selection:
-            out += [f"### {experiment.title}: the selection", "", *selection, ""]
+            out += [f"### {experiment.title}: the rule applied", "", *selection, ""]
     return "\n".join(out)
 
 
