@@ -29,6 +29,15 @@ _NO_FALLS = Criterion(
     better="lower",
 )
 
+_VELOCITY_ERROR = Criterion(
+    description="mean absolute error of the forward velocity per step of the posterior trajectories [m/s]",
+    kind="trace_mean",
+    key="reward_forward",
+    scale=-1.0,
+    threshold=0.3,
+    better="lower",
+)
+
 SAFE_POINT = Family(
     name="safe-point",
     env_id="SafePointGoalMeta-v0",
@@ -57,14 +66,7 @@ WALKER2D_VEL = Family(
     shift_env_kwargs={"velocity_low": 2.0, "velocity_high": 3.0, "unhealthy_penalty": 2.0},
     shift_description="target velocities U[2, 3] m/s (training U[0, 2]); unhealthy penalty kept at the training 2.0",
     competence=(
-        Criterion(
-            description="mean absolute error of the forward velocity per step of the posterior trajectories [m/s]",
-            kind="trace_mean",
-            key="reward_forward",
-            scale=-1.0,
-            threshold=0.3,
-            better="lower",
-        ),
+        _VELOCITY_ERROR,
         _NO_FALLS,
     ),
     return_margin=10.0,
@@ -120,16 +122,7 @@ HALF_CHEETAH_VEL = Family(
     name="cheetah-vel",
     env_id="HalfCheetahVelMeta-v0",
     title="HalfCheetah-Vel (PEARL's cheetah-vel)",
-    competence=(
-        Criterion(
-            description="mean absolute error of the forward velocity per step of the posterior trajectories [m/s]",
-            kind="trace_mean",
-            key="reward_forward",
-            scale=-1.0,
-            threshold=0.3,
-            better="lower",
-        ),
-    ),
+    competence=(_VELOCITY_ERROR,),
     return_margin=10.0,
 )
 
