@@ -43,6 +43,15 @@ def check_results_dir(path: str) -> None:
 CONFIRM_RUNS = 200  # a larger plan needs --yes (a typo in --seeds must not start days of runs)
 
 
+def _add_plan_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments that choose the planned runs of an experiment (``run`` and ``status``)."""
+    parser.add_argument("experiment", choices=sorted(EXPERIMENTS), help="the experiment (see `list`)")
+    parser.add_argument("--family", nargs="+", default=None, help="families of the experiment (default: all)")
+    parser.add_argument("--variants", nargs="+", default=None, help="variants of the experiment (default: all)")
+    parser.add_argument("--budget", default=None, choices=PRESETS, help="budget preset (default: the experiment's, cpu)")
+    parser.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 or 0-3,7 (default: the experiment's)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (subcommands ``list``, ``run``, ``report`` and the internal ``run-one``)."""
     parser = argparse.ArgumentParser(
@@ -54,11 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("list", help="the experiments, their families, variants and default seeds, and the budget presets")
 
     run = sub.add_parser("run", help="train and meta-test every (family, variant, seed) of an experiment")
-    run.add_argument("experiment", choices=sorted(EXPERIMENTS), help="table1, table2, table3 or safe-point")
-    run.add_argument("--family", nargs="+", default=None, help="families of the experiment (default: all)")
-    run.add_argument("--variants", nargs="+", default=None, help="variants of the experiment (default: all)")
-    run.add_argument("--budget", default=None, choices=PRESETS, help="budget preset (default: the experiment's, cpu)")
-    run.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 or 0-3,7 (default: the experiment's)")
+    _add_plan_arguments(run)
     run.add_argument(
         "--jobs",
         type=positive_int,
@@ -98,11 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--out", default="docs/results.md", help="markdown file; its text outside the markers is kept")
 
     status = sub.add_parser("status", help="finished, resumable and missing runs of an experiment, and the CPU time left")
-    status.add_argument("experiment", choices=sorted(EXPERIMENTS), help="the experiment")
-    status.add_argument("--family", nargs="+", default=None, help="families of the experiment (default: all)")
-    status.add_argument("--variants", nargs="+", default=None, help="variants of the experiment (default: all)")
-    status.add_argument("--budget", default=None, choices=PRESETS, help="budget preset (default: the experiment's)")
-    status.add_argument("--seeds", default=None, help="model seeds, as for run (default: the experiment's)")
+    _add_plan_arguments(status)
     status.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
 
     measure = sub.add_parser(
