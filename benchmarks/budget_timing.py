@@ -29,7 +29,7 @@ import gymnasium as gym
 import torch as th
 
 import sb3_pearl  # noqa: F401  (registers the task families)
-from sb3_pearl.common.meta_test import meta_test
+from sb3_pearl.evaluation.meta_test import meta_test
 from sb3_pearl.experiments.budgets import algo_class, load_budget, model_kwargs, preset_entries
 from sb3_pearl.experiments.families import get_family
 

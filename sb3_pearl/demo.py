@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3 import get_latest_run_id
 
-from sb3_pearl.common.meta_test import PAPER_KS, MetaTestResult
-from sb3_pearl.plots import plot_all
+from sb3_pearl.evaluation.figures import plot_all
+from sb3_pearl.evaluation.meta_test import PAPER_KS, MetaTestResult
 from sb3_pearl.zoo import train
 
 ENV_ID = "SafePointGoalMeta-v0"

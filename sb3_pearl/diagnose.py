@@ -1,6 +1,6 @@
 """``python -m sb3_pearl.diagnose <run folder or model.zip>``: the prior-safety diagnostics of a trained model.
 
-Prints :func:`sb3_pearl.common.diagnostics.compute_diagnostics` as a table (``--json``: as JSON).
+Prints :func:`sb3_pearl.pearl.diagnostics.compute_diagnostics` as a table (``--json``: as JSON).
 The model and its env id are found in:
 
 - a reproduction-harness run folder ``results/<exp>/<family>/<variant>/seed<N>/`` holding
@@ -13,7 +13,7 @@ The model and its env id are found in:
 
 ``--paths out.png`` (point families, whose observation is the 2-D position) also draws the prior policy's
 k = 0 paths on ``--paths-tasks`` held-out tasks spread over the goal angles, ``--paths-z0`` prior draws each
-(:func:`sb3_pearl.plots.plot_prior_paths`).
+(:func:`sb3_pearl.evaluation.figures.plot_prior_paths`).
 """
 
 from __future__ import annotations
@@ -32,7 +32,9 @@ from stable_baselines3.common.save_util import load_from_zip_file
 
 import sb3_pearl  # noqa: F401  (registers the envs)
 from sb3_pearl.common.checks import non_negative_int, positive_int
-from sb3_pearl.common.diagnostics import (
+from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.pearl import PEARL, PEARLPlus
+from sb3_pearl.pearl.diagnostics import (
     DEFAULT_N_GRAD_BATCHES,
     DEFAULT_N_POSTERIOR_SAMPLES,
     DEFAULT_N_TASKS,
@@ -40,8 +42,6 @@ from sb3_pearl.common.diagnostics import (
     compute_diagnostics,
     format_diagnostics,
 )
-from sb3_pearl.envs.task_protocol import Task
-from sb3_pearl.pearl import PEARL, PEARLPlus
 from sb3_pearl.zoo.safe_config import load_run_yaml
 
 LAYOUT_HELP = (
@@ -202,8 +202,8 @@ def draw_prior_paths(model: PEARL, env: gym.Env, out: str, n_tasks: int, n_z0: i
     :param seed: seed of the draws and resets
     :param max_steps: trajectory cap
     """
-    from sb3_pearl.common.diagnostics.paths import prior_paths
-    from sb3_pearl.plots import plot_prior_paths
+    from sb3_pearl.evaluation.figures import plot_prior_paths
+    from sb3_pearl.pearl.diagnostics.paths import prior_paths
 
     if min(n_tasks, n_z0) < 1:
         raise ValueError("--paths-tasks and --paths-z0 must be >= 1")
@@ -232,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     except RunFolderError as error:
         p.error(str(error))
     if args.paths:
-        from sb3_pearl.common.diagnostics.paths import check_position_observation
+        from sb3_pearl.pearl.diagnostics.paths import check_position_observation
 
         try:
             check_position_observation(model)  # before the diagnostics' minute of rollouts

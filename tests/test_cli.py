@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+import json
 import os
 import shutil
 import subprocess
@@ -77,6 +79,29 @@ def test_train_writes_zoo_layout_and_meta_test(trained: Path) -> None:
     with open(run_dir / ENV_ID / "config.yml") as file:
         config = yaml.load(file, Loader=yaml.UnsafeLoader)
     assert config["kl_weight"] == 0.37
+
+
+def test_zoo_meta_test_is_the_harness_meta_test(trained: Path) -> None:
+    """One meta-test: train.py's meta_test.csv / .json hold the numbers the harness's held-out phase gives the same model."""
+    import gymnasium as gym
+
+    from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED
+    from sb3_pearl.reproduce.runner import held_out_record
+
+    run_dir = trained / "pearlplus" / f"{ENV_ID}_1"
+    model = PEARLPlus.load(run_dir / f"{ENV_ID}.zip")
+    settings = {"n_adapt": 2, "n_repeats": 1, "n_tasks": 3, "deterministic": True}  # TINY_ZOO_PARAMS' meta_test
+    harness = held_out_record(model, gym.make(ENV_ID), settings, DEFAULT_EVAL_SEED, {})
+    with open(run_dir / "meta_test.csv") as file:
+        zoo_rows = list(csv.DictReader(file))
+    assert len(zoo_rows) == len(harness["rows"]) == 3 * 3
+    for zoo_row, harness_row in zip(zoo_rows, harness["rows"]):
+        assert {key: float(value) for key, value in zoo_row.items()} == pytest.approx(
+            {key: float(harness_row[key]) for key in zoo_row}, abs=1e-9
+        )
+    zoo = json.loads((run_dir / "meta_test.json").read_text())
+    assert zoo["summary"] == harness["summary"] and zoo["tasks"] == harness["tasks"]
+    assert zoo["config"]["eval_seed"] == zoo["config"]["crn_seed"] == DEFAULT_EVAL_SEED
 
 
 def test_params_reach_the_saved_model(trained: Path) -> None:

@@ -17,7 +17,10 @@ from stable_baselines3.common.logger import configure
 
 from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.common.buffers import MetaReplayBuffer
-from sb3_pearl.common.diagnostics import (
+from sb3_pearl.diagnose import find_run
+from sb3_pearl.diagnose import main as diagnose_main
+from sb3_pearl.evaluation.meta_test import meta_test
+from sb3_pearl.pearl.diagnostics import (
     actor_gradient_conflict,
     compute_diagnostics,
     compute_gradient_conflict,
@@ -26,9 +29,6 @@ from sb3_pearl.common.diagnostics import (
     roc_auc,
     rollout_with_z,
 )
-from sb3_pearl.common.meta_test import meta_test
-from sb3_pearl.diagnose import find_run
-from sb3_pearl.diagnose import main as diagnose_main
 from tests.conftest import TINY, make_discrete_env
 
 ENV_ID = "SafePointGoalMeta-v0"
@@ -319,10 +319,10 @@ def test_common_random_numbers() -> None:
 # The prior policy's paths (point families)
 # ----------------------------------------------------------------------------------------------
 def test_prior_paths_are_the_rollouts_the_violations_count(trained: PEARLPlus, monkeypatch: pytest.MonkeyPatch) -> None:
-    from sb3_pearl.common.diagnostics import paths as paths_module
-    from sb3_pearl.common.diagnostics import violations as violations_module
-    from sb3_pearl.common.diagnostics.paths import prior_paths
-    from sb3_pearl.common.diagnostics.violations import compute_violations
+    from sb3_pearl.pearl.diagnostics import paths as paths_module
+    from sb3_pearl.pearl.diagnostics import violations as violations_module
+    from sb3_pearl.pearl.diagnostics.paths import prior_paths
+    from sb3_pearl.pearl.diagnostics.violations import compute_violations
 
     calls: dict[str, list[tuple[Any, ...]]] = {"paths": [], "violations": []}
 
@@ -359,7 +359,7 @@ def test_prior_paths_are_the_rollouts_the_violations_count(trained: PEARLPlus, m
 
 
 def test_prior_paths_need_a_position_observation() -> None:
-    from sb3_pearl.common.diagnostics.paths import check_position_observation
+    from sb3_pearl.pearl.diagnostics.paths import check_position_observation
 
     model = PEARLPlus("MlpPolicy", "Walker2dVelMeta-v0", seed=0, **_kwargs())  # 17-D observation
     with pytest.raises(ValueError, match=r"2-D position observation .* got shape \(17,\)"):
@@ -368,9 +368,9 @@ def test_prior_paths_need_a_position_observation() -> None:
 
 
 def test_spread_tasks_and_the_paths_figure(trained: PEARLPlus, tmp_path: Path) -> None:
-    from sb3_pearl.common.diagnostics.paths import prior_paths
     from sb3_pearl.diagnose import spread_tasks
-    from sb3_pearl.plots import plot_prior_paths
+    from sb3_pearl.evaluation.figures import plot_prior_paths
+    from sb3_pearl.pearl.diagnostics.paths import prior_paths
 
     angles = [2.0, 0.5, 1.5, 1.0, 2.5]
     tasks = [{"goal": [float(np.cos(a)), float(np.sin(a))]} for a in angles]

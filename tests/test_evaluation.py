@@ -15,10 +15,11 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
 from sb3_pearl import PEARLPlus
-from sb3_pearl.common.callbacks import MetaTestCallback
-from sb3_pearl.common.meta_test import ROW_COLUMNS, MetaTestResult, get_test_tasks, meta_test
-from sb3_pearl.common.statistics import SUMMARY_COLUMNS, cvar, summarize, wilson_interval
 from sb3_pearl.envs.task_protocol import MetaTaskEnv
+from sb3_pearl.evaluation.callbacks import MetaTestCallback
+from sb3_pearl.evaluation.held_out import held_out_meta_test, held_out_tasks, meta_test_record
+from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult, json_value, meta_test
+from sb3_pearl.evaluation.statistics import SUMMARY_COLUMNS, cvar, summarize, wilson_interval
 
 HORIZON = 3
 UNSAFE_ACTION = 3
@@ -237,12 +238,28 @@ def test_clear_errors() -> None:
         meta_test(ScriptedModel(), DummyVecEnv([GuessEnv, GuessEnv]), TASKS)
 
 
-def test_get_test_tasks() -> None:
+def test_held_out_tasks_are_the_eval_seed_draw_and_never_training_tasks() -> None:
+    assert held_out_tasks(GuessEnv(), 5, eval_seed=3) == GuessEnv().sample_tasks(5, 3)
+    assert held_out_tasks(DummyVecEnv([GuessEnv]), 5, eval_seed=3) == GuessEnv().sample_tasks(5, 3)
+    drawn = GuessEnv().sample_tasks(4, 7)
+    n_same = sum(task == drawn[2] for task in drawn)  # 3 targets only: a draw repeats tasks
+    with pytest.raises(ValueError, match=rf"run x: {n_same} test task\(s\) drawn with eval_seed 7 are training tasks"):
+        held_out_tasks(GuessEnv(), 4, eval_seed=7, train_tasks=[drawn[2]], what="run x")
+    with pytest.raises(ValueError, match="has no sample_tasks"):
+        held_out_tasks(gym.make("CartPole-v1"), 2, eval_seed=0)
+
+
+def test_held_out_meta_test_is_the_protocol_with_common_random_numbers() -> None:
+    """One meta-test definition: the held-out draw, seed = crn_seed = eval_seed, the eval seed recorded."""
     model = ScriptedModel()
-    model.test_tasks = TASKS  # type: ignore[attr-defined]
-    assert get_test_tasks(model, GuessEnv(), n_tasks=1) == TASKS[:1]
-    sampled = get_test_tasks(model, GuessEnv(), n_tasks=5, seed=3, sample=True)
-    assert sampled == GuessEnv().sample_tasks(5, 3)
+    model.test_tasks = TASKS[:2]  # type: ignore[attr-defined]  # n_tasks None: as many as the model's test tasks
+    settings = {"n_adapt": 2, "n_repeats": 2, "n_tasks": None, "deterministic": True}
+    result = held_out_meta_test(model, GuessEnv(), settings, eval_seed=5)
+    direct = meta_test(ScriptedModel(), GuessEnv(), GuessEnv().sample_tasks(2, 5), n_adapt=2, n_repeats=2, seed=5, crn_seed=5)
+    assert result.rows == direct.rows and result.tasks == direct.tasks
+    assert result.config["eval_seed"] == 5 and result.config["crn_seed"] == 5
+    record = meta_test_record(result, wall_time_s=1.0)
+    assert record["summary"] == json_value(direct.summary) and record["wall_time_s"] == 1.0
 
 
 def test_callback_logs_meta_test(tiny_kwargs: dict[str, Any], tmp_path: Any) -> None:

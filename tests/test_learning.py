@@ -8,7 +8,7 @@ import pytest
 import torch as th
 
 from sb3_pearl import PEARL
-from sb3_pearl.common.meta_test import meta_test
+from sb3_pearl.evaluation.meta_test import meta_test
 
 # Reference point-robot settings (oyster configs/point-robot.json: fixed entropy 1, reward_scale 100,
 # kl 0.1), scaled down: 40/10 tasks, 64x64 networks, 16k env steps (about a minute on one core).
@@ -63,13 +63,20 @@ def test_pearl_beats_random_after_adaptation_on_point_robot() -> None:
     assert returns[1:].mean() > baseline + 1.0
 
 
+# The settings of the earlier SafePoint comparison (docs/results.md, "earlier measurements"): the reference
+# point-robot setting (oyster configs/point-robot.json: fixed entropy 1, kl 0.1) scaled down to minutes on one core.
+SAFE_POINT_SETTINGS: dict = {
+    **POINT_ROBOT,
+    **dict(n_test_tasks=20, num_initial_steps=150, num_steps_prior=60, num_extra_rl_steps_posterior=60),
+    **dict(num_train_steps_per_itr=300, embedding_batch_size=60),
+}
+
+
 @pytest.mark.slow
 def test_pearl_adapts_on_safe_point_goal() -> None:
     """With the reference entropy setting (fixed 1, reward_scale 5) PEARL's posterior beats its prior."""
-    from benchmarks.safe_point_claim import SETTINGS
-
     th.set_num_threads(1)
-    model = PEARL("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **{**SETTINGS, "reward_scale": 5.0})
+    model = PEARL("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **{**SAFE_POINT_SETTINGS, "reward_scale": 5.0})
     model.learn(30_000)
     returns = adapted_returns(model, gym.make("SafePointGoalMeta-v0"))
     print(f"held-out mean return per k: {np.round(returns, 2).tolist()}")

@@ -16,10 +16,10 @@ import gymnasium as gym
 import pytest
 
 from sb3_pearl import PEARLPlus
-from sb3_pearl.common.callbacks import MetaTestCallback
-from sb3_pearl.common.meta_test import MetaTestResult
-from sb3_pearl.common.progress import TrainingProgressCallback, format_duration
-from sb3_pearl.common.statistics import summarize
+from sb3_pearl.evaluation.callbacks import MetaTestCallback
+from sb3_pearl.evaluation.meta_test import MetaTestResult
+from sb3_pearl.evaluation.progress import TrainingProgressCallback, format_duration
+from sb3_pearl.evaluation.statistics import summarize
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.finetune import FineTune
 from sb3_pearl.zoo import enjoy, train
@@ -43,9 +43,8 @@ def run(command: list[str], cwd: Path, timeout: float = 120) -> subprocess.Compl
 def test_non_editable_install_runs_from_anywhere(tmp_path: Path) -> None:
     source = tmp_path / "source"
     source.mkdir()
-    for name in ("sb3_pearl", "zoo_hyperparams"):
-        shutil.copytree(ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__"))
-    for name in ("pyproject.toml", "setup.py", "MANIFEST.in", "README.md"):
+    shutil.copytree(ROOT / "sb3_pearl", source / "sb3_pearl", ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "MANIFEST.in", "README.md"):
         shutil.copy2(ROOT / name, source / name)
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)], check=True)
@@ -57,7 +56,8 @@ def test_non_editable_install_runs_from_anywhere(tmp_path: Path) -> None:
     proc = run(install, source)  # -v: the build backend's warnings too
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "project.license" not in proc.stdout + proc.stderr  # "... as a TOML table is deprecated"
-    assert (purelib / "sb3_pearl" / "zoo" / "hyperparams" / "pearlplus.yml").is_file()
+    assert (purelib / "sb3_pearl" / "config" / "zoo_hyperparams" / "pearlplus.yml").is_file()
+    assert (purelib / "sb3_pearl" / "config" / "presets" / "cpu.yml").is_file()
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
 
@@ -69,7 +69,7 @@ def test_non_editable_install_runs_from_anywhere(tmp_path: Path) -> None:
     proc = run([str(venv / "bin" / "sb3-pearl-train"), *train_args, "-params", *TINY_PARAMS], elsewhere)
     output = proc.stdout
     assert proc.returncode == 0, output[-3000:] + proc.stderr[-3000:]
-    assert f"Loading hyperparameters from: {purelib / 'sb3_pearl' / 'zoo' / 'hyperparams' / 'pearlplus.yml'}" in output
+    assert f"Loading hyperparameters from: {purelib / 'sb3_pearl' / 'config' / 'zoo_hyperparams' / 'pearlplus.yml'}" in output
     # 1. the collection-only start, then the measured costs and the ETA of the whole run
     assert "PEARLPlus: 300 env steps and 8 gradient steps. Initial collection: the first 120 env steps only collect" in output
     assert "First iteration: 120 env steps in " in output and "5 gradient steps in " in output

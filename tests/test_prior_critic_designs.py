@@ -14,14 +14,14 @@ import torch as th
 from torch import nn
 
 from sb3_pearl import PEARLPlus
-from sb3_pearl.common.diagnostics.calibration import rank_correlation
-from sb3_pearl.common.meta_test import meta_test
-from sb3_pearl.common.scripted import ScriptedPolicy
 from sb3_pearl.envs.safe_point_goal import SCRIPTED_PRIORS
+from sb3_pearl.evaluation.meta_test import meta_test
+from sb3_pearl.evaluation.scripted import ScriptedPolicy
 from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.families import SAFE_POINT
 from sb3_pearl.experiments.prior_critic import DESIGNS, PRIOR_CRITIC, design_variant
 from sb3_pearl.experiments.spec import Experiment, check_shared
+from sb3_pearl.pearl.diagnostics.calibration import rank_correlation
 from sb3_pearl.reproduce.prior_measures import compute_prior_measures, scripted_prior
 from sb3_pearl.reproduce.scheduler import plan_runs
 from tests.conftest import make_discrete_env

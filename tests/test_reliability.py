@@ -29,8 +29,8 @@ import tests.faulty_envs  # noqa: F401  (registers the failing families)
 from sb3_pearl import MAML, PEARL, FineTune, PEARLPlus
 from sb3_pearl.common.atomic import atomic_write, sb3_file_path
 from sb3_pearl.common.divergence import DivergenceError, NonFiniteEnvError
-from sb3_pearl.common.meta_test import MetaTestResult
 from sb3_pearl.envs import FAMILIES
+from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.zoo import enjoy
 from sb3_pearl.zoo.safe_config import UnsafeConfigError, load_run_yaml, parse_dict_string
 

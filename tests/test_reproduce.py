@@ -10,10 +10,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import pytest
 
 from sb3_pearl import PEARLPlus
-from sb3_pearl.common.meta_test import MetaTestResult
+from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.experiments import EXPERIMENTS, get_experiment
 from sb3_pearl.experiments.budgets import (
     PRESETS,
@@ -27,6 +28,7 @@ from sb3_pearl.experiments.spec import Claim, Criterion, Experiment, PaperCell, 
 from sb3_pearl.reproduce.competence import criterion_value, evaluate_competence
 from sb3_pearl.reproduce.layout import RESULT_KEYS, parse_seeds
 from sb3_pearl.reproduce.report import BEGIN, END, splice
+from sb3_pearl.reproduce.runner import held_out_record
 from sb3_pearl.reproduce.stats import (
     INCONCLUSIVE,
     NOT_REPRODUCED,
@@ -94,6 +96,10 @@ def test_run_writes_the_layout(results: Path) -> None:
         assert "error" not in result["diagnostics"] and "overlap" in result["diagnostics"]
         model = PEARLPlus.load(folder / "model.zip", device="cpu")
         assert model.prior_coef == result["model_kwargs"]["prior_coef"]
+        # The record is the meta-test of every trained model (train.py's too), reproduced from model.zip alone.
+        env = gym.make("SafePointGoalMeta-v0", **result["spec"]["family"]["env_kwargs"])
+        again = held_out_record(model, env, settings, result["eval_seed"], {})
+        assert again["rows"] == result["meta_test"]["rows"] and again["summary"] == result["meta_test"]["summary"]
         with open(folder / "progress.csv") as file:
             rows = list(csv.DictReader(file))
         assert rows and "train/critic_loss" in rows[0] and "time/total_timesteps" in rows[0]

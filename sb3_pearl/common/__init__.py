@@ -1,2 +1,2 @@
-"""Code shared by the algorithms: networks, buffers, context inference, task helpers, the adaptation protocol,
-the meta-test and its statistics."""
+"""The algorithms' building blocks: networks, soft actor-critic math, buffers, context inference, task helpers, the
+adaptation API's type, persistence, seeding and argument checks. The evaluation protocol is ``sb3_pearl.evaluation``."""

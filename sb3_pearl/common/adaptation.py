@@ -1,6 +1,6 @@
 """The adaptation API every algorithm of the project implements, and the checks for it.
 
-The meta-test protocol (:func:`sb3_pearl.common.meta_test.meta_test`) talks to a model only through
+The meta-test protocol (:func:`sb3_pearl.evaluation.meta_test.meta_test`) talks to a model only through
 these four methods (``docs/design.md``): per test task it calls :meth:`~AdaptiveModel.reset_adaptation`,
 then for each trajectory k = 0..K it calls :meth:`~AdaptiveModel.adapt` (for k >= 1 only), rolls the
 trajectory out with :meth:`~AdaptiveModel.predict` and hands every transition to

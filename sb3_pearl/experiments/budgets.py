@@ -1,6 +1,6 @@
 """Budget presets: how much each (family, algorithm) run trains and meta-tests, as data.
 
-One YAML file per preset in ``sb3_pearl/experiments/presets/`` (shipped with the package):
+One YAML file per preset in ``sb3_pearl/config/presets/`` (shipped with the package):
 
 - ``smoke``: seconds per run, for the tests;
 - ``cpu``: one run <= 45 minutes on one core of the project's CPU machine (docs/reproduce.md has
@@ -26,14 +26,14 @@ from __future__ import annotations
 
 import copy
 import functools
-from pathlib import Path
 from typing import Any
 
 import yaml
 
+from sb3_pearl.config import PRESETS_DIR
+from sb3_pearl.evaluation.held_out import META_TEST_DEFAULTS
 from sb3_pearl.registry import ACTIVATIONS, algorithm_class, constructor_kwargs
 
-PRESETS_DIR = Path(__file__).resolve().parent / "presets"
 PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
 ENTRY_KEYS = frozenset(
     {"n_timesteps", "n_envs", "policy", "kwargs", "meta_test", "shift_meta_test", "competence_meta_test", "curve"}
@@ -43,8 +43,7 @@ ENTRY_KEYS = frozenset(
 # `n_prior_trajectories` with z from the prior) and the k = 0 return and violation rate.
 CURVE_KEYS = frozenset({"every", "n_tasks", "n_adapt", "n_prior_trajectories"})
 CURVE_DEFAULTS = {"n_adapt": 2, "n_prior_trajectories": 1}
-META_TEST_KEYS = frozenset({"n_tasks", "n_repeats", "n_adapt", "deterministic"})
-META_TEST_DEFAULTS: dict[str, Any] = {"n_adapt": 5, "n_repeats": 1, "deterministic": True}
+META_TEST_KEYS = frozenset(META_TEST_DEFAULTS)  # the one definition of a meta-test's settings (evaluation/held_out.py)
 COMPETENCE_DEFAULTS: dict[str, Any] = {"n_tasks": 10, "n_repeats": 1, "n_adapt": 2, "deterministic": True}
 # Presets whose meta-test must measure k = 0 with >= 10 prior draws per task and >= 200 k = 0 trajectories.
 STATISTICS_FLOOR: dict[str, tuple[int, int]] = {"cpu": (10, 200), "paper": (10, 200)}
@@ -127,7 +126,7 @@ def validate_entry(entry: Any, algo: str, where: str) -> dict[str, Any]:
         raise ValueError(f"{where}: kwargs must be a mapping of constructor kwargs, got {kwargs!r}")
     check_constructor_kwargs(algo, kwargs, where)
     meta_test = _meta_test(entry["meta_test"], META_TEST_DEFAULTS, f"{where} meta_test")
-    if "n_tasks" not in meta_test:
+    if meta_test["n_tasks"] is None:
         raise ValueError(f"{where} meta_test: n_tasks is required (the test tasks are drawn with the experiment's eval seed)")
     shift = _meta_test(entry.get("shift_meta_test", meta_test), meta_test, f"{where} shift_meta_test")
     competence = _meta_test(entry.get("competence_meta_test", {}), COMPETENCE_DEFAULTS, f"{where} competence_meta_test")
@@ -167,7 +166,7 @@ def _meta_test(settings: Any, defaults: dict[str, Any], where: str) -> dict[str,
         raise ValueError(f"{where}: unknown key(s) {unknown}; allowed {sorted(META_TEST_KEYS)}")
     merged = {**defaults, **settings}
     for key in ("n_tasks", "n_repeats"):
-        if key in merged and (not isinstance(merged[key], int) or merged[key] < 1):
+        if merged.get(key) is not None and (not isinstance(merged[key], int) or merged[key] < 1):
             raise ValueError(f"{where}: {key} must be an integer >= 1, got {merged[key]!r}")
     if not isinstance(merged["n_adapt"], int) or merged["n_adapt"] < 0:
         raise ValueError(f"{where}: n_adapt must be an integer >= 0, got {merged['n_adapt']!r}")
@@ -189,9 +188,6 @@ def check_statistics_floor(meta_test: dict[str, Any], floor: tuple[int, int], wh
             f"{where}: the meta-test needs n_repeats >= {min_repeats} prior draws per test task and n_tasks * n_repeats "
             f">= {min_trajectories} k = 0 trajectories, got {meta_test['n_tasks']} x {meta_test['n_repeats']}"
         )
-
-
-algo_class = algorithm_class  # the harness's name for it
 
 
 def check_constructor_kwargs(algo: str, kwargs: dict[str, Any], where: str) -> None:

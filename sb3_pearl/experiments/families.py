@@ -55,7 +55,7 @@ SAFE_POINT = Family(
     prior_bar=PriorBar(
         "scripted",
         "wait-at-0.3",
-        "scripted: walk to (0, 0.3), inside the hazard-free inner disc, and wait (benchmarks/safe_point_scripted_prior.py)",
+        "scripted: walk to (0, 0.3), inside the hazard-free inner disc, and wait (studies/safe_point_scripted_prior.py)",
     ),
 )
 

@@ -40,9 +40,9 @@ from sb3_pearl.common.checks import (
 )
 from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin
-from sb3_pearl.common.progress import TrainingPlan
 from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.evaluation.progress import TrainingPlan
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
 
 SelfFineTune = TypeVar("SelfFineTune", bound="FineTune")
@@ -121,7 +121,7 @@ class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
     :param _init_setup_model: build the networks at construction
     """
 
-    # Read by the meta-test protocol (sb3_pearl.common.meta_test): False keeps its deterministic
+    # Read by the meta-test protocol (sb3_pearl.evaluation.meta_test): False keeps its deterministic
     # trajectories, as for PEARL / PEARL+. Fine-tuning learns from them, but after one deterministic
     # trajectory it is worse than k = 0 on the point robot, unlike after one stochastic trajectory
     # (docs/finetune.md, measurements).

@@ -23,14 +23,13 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_pearl.common.buffers import MetaReplayBuffer
-from sb3_pearl.common.diagnostics import record_gradient_conflict
 from sb3_pearl.common.divergence import NonFiniteUpdateGuard
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, check_buffer_tasks, read_replay_buffer
 from sb3_pearl.common.precision import resolve_bf16
-from sb3_pearl.common.progress import TrainingPlan
 from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.evaluation.progress import TrainingPlan
 from sb3_pearl.pearl.adaptation import PosteriorAdaptationMixin
 from sb3_pearl.pearl.arguments import check_pearl_arguments
 from sb3_pearl.pearl.collection import (
@@ -41,6 +40,7 @@ from sb3_pearl.pearl.collection import (
     requeue_open_segments,
     start_iteration,
 )
+from sb3_pearl.pearl.diagnostics import record_gradient_conflict
 from sb3_pearl.pearl.losses import compute_losses
 from sb3_pearl.pearl.policies import PEARLPolicy
 

@@ -129,7 +129,7 @@ def _list() -> None:
         print(f"  families: {', '.join(f.name for f in experiment.families)}")
         print(f"  variants: {', '.join(f'{v.name} ({v.label})' for v in experiment.variants)}")
         print(f"  default seeds {list(experiment.seeds)}, budget {experiment.budget}, eval seed {experiment.eval_seed}")
-    print(f"budget presets: {', '.join(PRESETS)} (sb3_pearl/experiments/presets/)")
+    print(f"budget presets: {', '.join(PRESETS)} (sb3_pearl/config/presets/)")
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_pearl.common.meta_test import MetaTestResult
+from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.experiments.spec import Criterion
 
 

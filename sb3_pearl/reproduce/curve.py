@@ -32,8 +32,8 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_pearl.common.atomic import atomic_write
-from sb3_pearl.common.meta_test import meta_test
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.evaluation.held_out import run_meta_test
 from sb3_pearl.experiments.spec import Criterion
 from sb3_pearl.reproduce.competence import evaluate_competence
 
@@ -95,32 +95,16 @@ def evaluate_point(
     """
     start = time.time()
     training = model.policy.training if hasattr(model, "policy") else False
-    result = meta_test(
-        model,
-        env,
-        tasks,
-        n_adapt=settings["n_adapt"],
-        n_repeats=1,
-        seed=eval_seed,
-        crn_seed=eval_seed,
-        n_prior_trajectories=settings["n_prior_trajectories"],
-    )
+    protocol = {"n_adapt": settings["n_adapt"], "n_repeats": 1, "deterministic": True}
+    result = run_meta_test(model, env, tasks, protocol, eval_seed, n_prior_trajectories=settings["n_prior_trajectories"])
     last = settings["n_adapt"]
     finals = np.array([row["return"] for row in result.rows if row["k"] == last])
     k0 = result.summary[0]
     check: dict[str, float] = {"competent": math.nan, **{f"criterion_{i}": math.nan for i in range(MAX_CRITERIA)}}
     if competence is not None and getattr(model, "train_tasks", None):
         criteria, comp_settings, trace_keys = competence
-        on_train = meta_test(
-            model,
-            env,
-            list(model.train_tasks)[: comp_settings["n_tasks"]],
-            n_adapt=comp_settings["n_adapt"],
-            n_repeats=comp_settings["n_repeats"],
-            seed=eval_seed,
-            crn_seed=eval_seed,
-            trace_keys=trace_keys,
-        )
+        train_tasks = list(model.train_tasks)[: comp_settings["n_tasks"]]
+        on_train = run_meta_test(model, env, train_tasks, comp_settings, eval_seed, trace_keys=trace_keys)
         verdict = evaluate_competence(on_train, criteria)
         check["competent"] = float(verdict["passed"])
         for i, entry in enumerate(verdict["criteria"][:MAX_CRITERIA]):

@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from sb3_pearl.experiments.spec import Experiment  # noqa: E402
-from sb3_pearl.reproduce.report import cell_stats, last_k, seed_values  # noqa: E402
+from sb3_pearl.reproduce.cells import cell_stats, last_k, seed_values  # noqa: E402
 
 
 def _error_bars(mean: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:

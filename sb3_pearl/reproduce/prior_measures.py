@@ -2,7 +2,7 @@
 
 - **Calibration** (PEARL / PEARL+): the critic that scores the actor's prior term, Q~(s0, a0, z0) (Q(s0, a0, z0)
   for PEARL and the shared ablation), against the Monte-Carlo soft return of the same z0 rollouts
-  (:func:`~sb3_pearl.common.diagnostics.compute_calibration`): ``bias``, ``relative_error`` and ``rank_corr``,
+  (:func:`~sb3_pearl.pearl.diagnostics.compute_calibration`): ``bias``, ``relative_error`` and ``rank_corr``,
   on the model's first :data:`N_CALIBRATION_TASKS` *training* tasks with :data:`N_CALIBRATION_Z0` prior draws.
 - **Prior-optimality gap** (every algorithm): the k = 0 return and violation rate of the prior policy against the
   family's task-independent bar (:class:`~sb3_pearl.experiments.spec.PriorBar`), on the model's first
@@ -25,12 +25,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_pearl.common.diagnostics import compute_calibration
-from sb3_pearl.common.meta_test import json_value, meta_test
-from sb3_pearl.common.scripted import ScriptedPolicy
 from sb3_pearl.common.seeding import derived_seed, get_global_rng_state, seed_global_rngs, set_global_rng_state
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.evaluation.held_out import run_meta_test
+from sb3_pearl.evaluation.meta_test import json_value
+from sb3_pearl.evaluation.scripted import ScriptedPolicy
 from sb3_pearl.experiments.spec import Family
+from sb3_pearl.pearl.diagnostics import compute_calibration
 
 N_CALIBRATION_TASKS = 8
 N_CALIBRATION_Z0 = 16
@@ -57,7 +58,7 @@ def scripted_prior(env_id: str, name: str) -> ScriptedPolicy:
 
 def _k0(model: Any, env: gym.Env, tasks: list[Task], n_repeats: int, eval_seed: int) -> dict[str, float]:
     """k = 0 return and violation rate of ``model`` on ``tasks`` (deterministic actions, common random numbers)."""
-    result = meta_test(model, env, tasks, n_adapt=0, n_repeats=n_repeats, seed=eval_seed, crn_seed=eval_seed)
+    result = run_meta_test(model, env, tasks, {"n_adapt": 0, "n_repeats": n_repeats, "deterministic": True}, eval_seed)
     k0 = result.summary[0]
     return {"n": int(k0["n"]), "return": float(k0["return_mean"]), "violation": float(k0["violation_rate"])}
 
@@ -178,7 +179,7 @@ def measure_results(
 def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> bool:
     """Measure one run, under its lock; its result.json is read here, so nothing written before is overwritten."""
     from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.experiments.budgets import algo_class
+    from sb3_pearl.registry import algorithm_class
     from sb3_pearl.reproduce.layout import MODEL_FILE, read_result, write_json_atomic
 
     result = read_result(path)
@@ -190,7 +191,7 @@ def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> 
     experiment = get_experiment(result["experiment"])
     family = experiment.family(result["family"])
     algo = experiment.variant(result["variant"]).algo
-    model = algo_class(algo).load(path.parent / MODEL_FILE, device=result.get("device", "cpu"))  # type: ignore[attr-defined]
+    model = algorithm_class(algo).load(path.parent / MODEL_FILE, device=result.get("device", "cpu"))  # type: ignore[attr-defined]
     meta = result["meta_test"]
     result["prior_critic"] = compute_prior_measures(
         model,

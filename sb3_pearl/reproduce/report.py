@@ -19,42 +19,25 @@ from __future__ import annotations
 import math
 import os
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sb3_pearl.common.meta_test import PAPER_KS
-from sb3_pearl.common.statistics import wilson_interval
+from sb3_pearl.evaluation.meta_test import PAPER_KS
 from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Claim, Experiment, resolve_k
+from sb3_pearl.reproduce.cells import Group, cell_stats, last_k, load_groups, seed_values
 from sb3_pearl.reproduce.curve import curve_table
-from sb3_pearl.reproduce.layout import find_results, read_result
+from sb3_pearl.reproduce.layout import find_results
 from sb3_pearl.reproduce.prior_report import prior_critic_table, selection_table
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval, verdict
 
 BEGIN = "<!-- reproduce:begin -->"
 END = "<!-- reproduce:end -->"
-METRIC_KEYS = {"violation": "violation_rate", "return": "return_mean"}
 DIRECTION_TEXT = {"lower": "<", "higher": ">", "equal": "=", "not_lower": ">=", "not_higher": "<="}
-
-# variant -> seed -> result.json
-Group = dict[str, dict[int, dict[str, Any]]]
-
-
-@dataclass(frozen=True)
-class CellStats:
-    """Statistics of one (variant, k) cell over seeds."""
-
-    violation: Interval
-    pooled_rate: float
-    pooled_low: float
-    pooled_high: float
-    ret: Interval
-    n_trajectories: int
-    n_seeds: int
 
 
 @dataclass(frozen=True)
@@ -66,81 +49,6 @@ class ClaimResult:
     difference: Interval
     margin: float
     verdict: str
-
-
-def load_groups(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str], Group]:
-    """
-    Every complete run under ``results_dir``, grouped.
-
-    :param results_dir: root of the results layout
-    :return: (experiment, budget preset, family) -> variant -> seed -> result
-    """
-    groups: dict[tuple[str, str, str], Group] = defaultdict(lambda: defaultdict(dict))
-    for path in find_results(results_dir):
-        result = read_result(path)
-        key = (result["experiment"], result["budget_preset"], result["family"])
-        groups[key][result["variant"]][int(result["seed"])] = result
-    # Shared variants: the owner's runs join the groups of every experiment that shares them (when it has runs).
-    for (experiment_name, budget, family), group in list(groups.items()):
-        for other in EXPERIMENTS.values():
-            for variant, owner in other.shared.items():
-                if owner == experiment_name and variant in group and (other.name, budget, family) in groups:
-                    groups[(other.name, budget, family)][variant] = group[variant]
-    return {key: {variant: dict(seeds) for variant, seeds in group.items()} for key, group in sorted(groups.items())}
-
-
-def summary_at(result: dict[str, Any], k: int, section: str = "meta_test") -> dict[str, Any] | None:
-    """The summary entry of trajectory ``k`` of a run's meta-test (``section``: ``meta_test`` or ``shift``)."""
-    block = result.get(section) or {}
-    for entry in block.get("summary", []):
-        if int(entry["k"]) == k:
-            return entry
-    return None
-
-
-def last_k(results: Mapping[int, dict[str, Any]], section: str = "meta_test") -> int:
-    """The last trajectory index K of the runs' meta-tests (the smallest over runs)."""
-    ks = [max(int(e["k"]) for e in (r.get(section) or {}).get("summary", [{"k": 0}])) for r in results.values()]
-    return min(ks) if ks else 0
-
-
-def seed_values(results: Mapping[int, dict[str, Any]], k: int, metric: str, section: str = "meta_test") -> dict[int, float]:
-    """Per-seed violation rate or mean return at ``k`` (seeds without that k are left out)."""
-    values = {}
-    for seed, result in results.items():
-        entry = summary_at(result, k, section)
-        value = None if entry is None else entry.get(METRIC_KEYS[metric])
-        if value is not None and not (isinstance(value, float) and math.isnan(value)):
-            values[seed] = float(value)
-    return values
-
-
-def cell_stats(results: Mapping[int, dict[str, Any]], k: int, section: str = "meta_test") -> CellStats | None:
-    """
-    The statistics of one (variant, k) cell.
-
-    :param results: seed -> result of one variant
-    :param k: trajectory index
-    :param section: ``meta_test`` or ``shift``
-    :return: the statistics, None if no run has trajectory k
-    """
-    entries = [e for e in (summary_at(r, k, section) for r in results.values()) if e is not None]
-    if not entries:
-        return None
-    rates = [float(e["violation_rate"]) for e in entries]
-    returns = [float(e["return_mean"]) for e in entries]
-    n = [int(e["n"]) for e in entries]
-    violated = sum(round(rate * count) for rate, count in zip(rates, n))
-    low, high = wilson_interval(violated, sum(n))
-    return CellStats(
-        violation=t_interval(rates),
-        pooled_rate=violated / sum(n),
-        pooled_low=low,
-        pooled_high=high,
-        ret=t_interval(returns),
-        n_trajectories=sum(n),
-        n_seeds=len(entries),
-    )
 
 
 def claim_margin(claim: Claim, experiment: Experiment) -> float:

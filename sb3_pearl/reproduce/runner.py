@@ -27,11 +27,13 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_pearl  # noqa: F401  (registers the task families)
-from sb3_pearl.common.diagnostics import compute_diagnostics
-from sb3_pearl.common.meta_test import MetaTestResult, json_value, meta_test
+from sb3_pearl.evaluation.held_out import held_out_meta_test, held_out_tasks, meta_test_record, run_meta_test
+from sb3_pearl.evaluation.meta_test import json_value
 from sb3_pearl.experiments import get_experiment
-from sb3_pearl.experiments.budgets import algo_class, check_constructor_kwargs, load_budget, model_kwargs
+from sb3_pearl.experiments.budgets import check_constructor_kwargs, load_budget, model_kwargs
 from sb3_pearl.experiments.spec import Experiment, Family, Variant
+from sb3_pearl.pearl.diagnostics import compute_diagnostics
+from sb3_pearl.registry import algorithm_class
 from sb3_pearl.reproduce.checkpoint import (
     DEFAULT_INTERVAL_S,
     Interrupt,
@@ -113,45 +115,31 @@ def existing_result(path: Path, budget_preset: str) -> dict[str, Any] | None:
     return result
 
 
-def _meta_test_record(result: MetaTestResult, seconds: float, env_kwargs: dict[str, Any]) -> dict[str, Any]:
-    record = result.to_dict()
-    record.pop("traces", None)
-    record.pop("paper", None)
-    record["wall_time_s"] = seconds
-    record["env_kwargs"] = env_kwargs
-    return record
-
-
-def _held_out_tasks(env: gym.Env, n_tasks: int, eval_seed: int, train_tasks: list[Any], what: str) -> list[Any]:
-    tasks = list(env.unwrapped.sample_tasks(n_tasks, eval_seed))  # type: ignore[attr-defined]
-    overlap = [task for task in tasks if task in train_tasks]
-    if overlap:
-        raise ValueError(f"{what}: {len(overlap)} test task(s) drawn with eval_seed {eval_seed} are training tasks")
-    return tasks
-
-
-def _protocol(
+def held_out_record(
     model: Any,
     env: gym.Env,
-    tasks: list[Any],
     settings: dict[str, Any],
     eval_seed: int,
-    trace_keys: tuple[str, ...] = (),
+    env_kwargs: dict[str, Any],
+    what: str = "",
     on_trajectory_start: Callable[[int, int, int], None] | None = None,
-) -> MetaTestResult:
-    """The meta-test of one run with its preset settings, seeded by the experiment's eval seed (common random numbers)."""
-    return meta_test(
-        model,
-        env,
-        tasks,
-        n_adapt=settings["n_adapt"],
-        n_repeats=settings["n_repeats"],
-        deterministic=settings["deterministic"],
-        seed=eval_seed,
-        trace_keys=trace_keys,
-        crn_seed=eval_seed,
-        on_trajectory_start=on_trajectory_start,
-    )
+) -> dict[str, Any]:
+    """
+    A run's held-out meta-test as result.json stores it (``meta_test`` / ``shift``): the meta-test of every trained
+    model (:func:`~sb3_pearl.evaluation.held_out.held_out_meta_test`, train.py's too) with its wall time and env kwargs.
+
+    :param model: the trained model
+    :param env: the evaluation env (built with ``env_kwargs``)
+    :param settings: the budget's meta-test settings
+    :param eval_seed: the experiment's eval seed
+    :param env_kwargs: the env's kwargs, recorded
+    :param what: the run, for messages
+    :param on_trajectory_start: called before every trajectory (the resume tests' interruption hook)
+    :return: the record
+    """
+    start = time.time()
+    result = held_out_meta_test(model, env, settings, eval_seed, what, on_trajectory_start=on_trajectory_start)
+    return meta_test_record(result, wall_time_s=time.time() - start, env_kwargs=env_kwargs)
 
 
 def run_one(
@@ -231,7 +219,7 @@ def run_one(
         )
 
     env = make_vec_env(family.env_id, n_envs=budget["n_envs"], seed=seed, env_kwargs=env_kwargs)
-    algo = algo_class(variant.algo)
+    algo = algorithm_class(variant.algo)
     progress = folder / PROGRESS_FILE
     if state is None:
         model = algo(budget["policy"], env, seed=seed, verbose=0, device="auto", **model_kwargs(kwargs))
@@ -249,7 +237,7 @@ def run_one(
         curve_env = None
         if "curve" in budget:  # the learning curve on the held-out tasks (docs/reproduce.md, "Learning curves")
             curve_env = gym.make(family.env_id, **env_kwargs)
-            curve_tasks = _held_out_tasks(
+            curve_tasks = held_out_tasks(
                 curve_env, budget["curve"]["n_tasks"], experiment.eval_seed, list(model.train_tasks), key.label()
             )
             resume_at = int(state["num_timesteps"]) if state is not None else 0
@@ -286,17 +274,14 @@ def run_one(
 
     settings = budget["meta_test"]
     eval_env = gym.make(family.env_id, **env_kwargs)
-    tasks = _held_out_tasks(eval_env, settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
     trajectories = iter(range(1, 1 << 62))
     on_trajectory = None if interrupt is None else (lambda *_: interrupt("meta_test", next(trajectories)))
 
-    def held_out_meta_test() -> dict[str, Any]:
+    def held_out_phase() -> dict[str, Any]:
         log(f"[{key.label()}] meta-test {settings}", flush=True)
-        start = time.time()
-        result = _protocol(model, eval_env, tasks, settings, experiment.eval_seed, on_trajectory_start=on_trajectory)
-        return _meta_test_record(result, time.time() - start, env_kwargs)
+        return held_out_record(model, eval_env, settings, experiment.eval_seed, env_kwargs, key.label(), on_trajectory)
 
-    held_out = phase("meta_test", held_out_meta_test)
+    held_out = phase("meta_test", held_out_phase)
 
     def shifted_meta_test() -> dict[str, Any] | None:
         if family.shift_env_kwargs is None:
@@ -304,12 +289,10 @@ def run_one(
         shift_settings = budget["shift_meta_test"]
         shift_kwargs = {**env_kwargs, **dict(family.shift_env_kwargs)}
         shift_env = gym.make(family.env_id, **shift_kwargs)
-        shift_tasks = _held_out_tasks(shift_env, shift_settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
         log(f"[{key.label()}] shifted meta-test {shift_settings}", flush=True)
-        start = time.time()
-        shifted = _protocol(model, shift_env, shift_tasks, shift_settings, experiment.eval_seed)
+        record = held_out_record(model, shift_env, shift_settings, experiment.eval_seed, shift_kwargs, key.label())
         shift_env.close()
-        return _meta_test_record(shifted, time.time() - start, shift_kwargs)
+        return record
 
     shift = phase("shift", shifted_meta_test)
 
@@ -317,7 +300,7 @@ def run_one(
         if not train_tasks:
             return {"skipped": "the model has no training tasks"}
         comp_settings = budget["competence_meta_test"]
-        on_train = _protocol(
+        on_train = run_meta_test(
             model, eval_env, train_tasks[: comp_settings["n_tasks"]], comp_settings, experiment.eval_seed, family.trace_keys()
         )
         return {**evaluate_competence(on_train, family.competence), "settings": comp_settings, "summary": on_train.summary}
@@ -325,6 +308,7 @@ def run_one(
     competence = phase("competence", competence_check)
 
     def prior_measures() -> dict[str, Any]:
+        tasks = held_out_tasks(eval_env, settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
         try:
             return compute_prior_measures(
                 model, variant.algo, family, env_kwargs, settings, tasks, held_out["summary"][0], experiment.eval_seed, seed

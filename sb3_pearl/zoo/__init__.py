@@ -16,7 +16,7 @@ After ``pip install``, ``python -m sb3_pearl.train`` / ``python -m sb3_pearl.enj
 
 from sb3_pearl.zoo.experiment_manager import (
     HYPERPARAMS_DIR,
-    META_TEST_DEFAULTS,
+    ZOO_META_TEST_DEFAULTS,
     ZOO_SPECIAL_KEYS,
     MetaExperimentManager,
     check_model_env,
@@ -37,7 +37,7 @@ from sb3_pearl.zoo.usage import UsageError
 
 __all__ = [
     "HYPERPARAMS_DIR",
-    "META_TEST_DEFAULTS",
+    "ZOO_META_TEST_DEFAULTS",
     "ZOO_SPECIAL_KEYS",
     "MetaExperimentManager",
     "UsageError",

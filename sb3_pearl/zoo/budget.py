@@ -1,6 +1,6 @@
 """``train.py --budget PRESET``: a family's entry of a budget preset as the zoo's hyperparameters.
 
-The presets (``sb3_pearl/experiments/presets/*.yml``, read by
+The presets (``sb3_pearl/config/presets/*.yml``, read by
 :func:`~sb3_pearl.experiments.budgets.load_budget`) are the one source of the reproduction harness's budgets;
 ``--budget cpu`` trains with the same entry (a run of <= 45 minutes on one core) instead of the paper-sized
 entry of ``zoo_hyperparams/<algo>.yml``. Env ids map to the presets' family names through
@@ -71,7 +71,7 @@ def budget_hyperparams(preset: str, env_id: str, algo: str) -> dict[str, Any]:
         have = families_with(preset, algo)
         raise UsageError(
             f"--budget {preset}: the {preset} preset has no {algo} entry for {env_id}; it has one for "
-            f"{', '.join(have) or 'no env'} (sb3_pearl/experiments/presets/{preset}.yml). Without --budget, "
+            f"{', '.join(have) or 'no env'} (sb3_pearl/config/presets/{preset}.yml). Without --budget, "
             f"lower -n or the network sizes with -params"
         )
     budget = load_budget(preset, family.budget_name, algo)

@@ -23,9 +23,10 @@ from rl_zoo3.utils import get_model_path
 from stable_baselines3.common.utils import set_random_seed
 
 from sb3_pearl.common.checks import non_negative_int, positive_int
-from sb3_pearl.common.meta_test import ROW_COLUMNS, MetaTestResult, get_test_tasks, meta_test
 from sb3_pearl.common.runtime import has_display
-from sb3_pearl.zoo.experiment_manager import check_model_env, check_model_spaces
+from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, held_out_tasks, run_meta_test
+from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult
+from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
 from sb3_pearl.zoo.registry import register_algos
 from sb3_pearl.zoo.safe_config import UnsafeConfigError, get_saved_hyperparams, load_run_yaml
 from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, check_env_id, exit_on_usage_error
@@ -50,11 +51,11 @@ def enjoy_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--n-repeats", help="repeats of the sequence per task", default=1, type=positive_int)
     parser.add_argument(
-        "--sample-tasks",
-        action="store_true",
-        default=False,
-        help="draw --n-tasks tasks from the env (with --seed) instead of the model's saved test tasks "
-        "(implied by --env-kwargs: a shifted task distribution)",
+        "--eval-seed",
+        help="seed of the held-out tasks (drawn from the env, --env-kwargs for a shifted distribution) and of the common "
+        f"random numbers: train.py's final meta-test and the harness use the same draw (default {DEFAULT_EVAL_SEED})",
+        type=non_negative_int,
+        default=DEFAULT_EVAL_SEED,
     )
     parser.add_argument("--stochastic", action="store_true", default=False, help="Use stochastic actions")
     parser.add_argument("--no-render", action="store_true", default=False, help="Do not render the environment")
@@ -183,9 +184,13 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
 
     model = ALGOS[args.algo].load(model_path, device=args.device)
     check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
-    tasks = get_test_tasks(model, env, args.n_tasks, args.seed, sample=args.sample_tasks or shifted)
-    source = "sampled from the env" if (args.sample_tasks or shifted or not getattr(model, "test_tasks", None)) else "saved"
-    print(f"{len(tasks)} test tasks ({source}), trajectories k = 0 (prior) .. {args.n_adapt} (posterior)")
+    train_tasks = list(getattr(model, "train_tasks", None) or [])
+    tasks = held_out_tasks(env, args.n_tasks, args.eval_seed, train_tasks, model_path)
+    source = "shifted ranges, " if shifted else ""
+    print(
+        f"{len(tasks)} test tasks ({source}eval seed {args.eval_seed}), trajectories k = 0 (prior) .. {args.n_adapt} "
+        "(posterior)"
+    )
 
     def name_video(task: int, repeat: int, k: int) -> None:
         if isinstance(env, RecordVideo):
@@ -193,14 +198,13 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
             env.name_prefix = f"{args.algo}-{env_id}-task{task}-rep{repeat}-k{k}-{phase}"
 
     try:
-        result = meta_test(
+        settings = {"n_adapt": args.n_adapt, "n_repeats": args.n_repeats, "deterministic": not args.stochastic}
+        result = run_meta_test(
             model,
             env,
             tasks,
-            n_adapt=args.n_adapt,
-            n_repeats=args.n_repeats,
-            deterministic=not args.stochastic,
-            seed=args.seed,
+            settings,
+            args.eval_seed,
             on_trajectory_start=name_video,
             progress_bar=True,
             description="Rollouts (Ctrl-C stops)",
@@ -220,7 +224,7 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     if args.video_folder is not None:
         print(f"Videos in {args.video_folder}")
     if args.plot is not None:
-        from sb3_pearl.plots import plot_all
+        from sb3_pearl.evaluation.figures import plot_all
 
         output = args.plot or os.path.join(log_path, "enjoy_adaptation.png")
         for path in plot_all({args.algo: result}, output, title=f"{args.algo} on {env_id}"):

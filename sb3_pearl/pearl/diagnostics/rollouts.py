@@ -15,10 +15,10 @@ import torch as th
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.buffers import MetaReplayBuffer
-from sb3_pearl.common.meta_test import _SingleEnv
 from sb3_pearl.common.seeding import derived_seed
 from sb3_pearl.common.soft_actor_critic import evaluate_policy
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.evaluation.meta_test import _SingleEnv
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL

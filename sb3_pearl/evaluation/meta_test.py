@@ -14,7 +14,7 @@ in the trajectory). Per-step traces of the family's ``step_trace_keys`` (the mer
 ``ego_speed``) are kept for the plots. Both are class attributes of
 :class:`sb3_pearl.envs.task_protocol.MetaTaskEnv`; the keys used are recorded in the result's config.
 
-The summary per k is :func:`sb3_pearl.common.statistics.summarize`; the paper's "0/1/3/5 traj."
+The summary per k is :func:`sb3_pearl.evaluation.statistics.summarize`; the paper's "0/1/3/5 traj."
 columns are :data:`PAPER_KS`.
 """
 
@@ -34,10 +34,10 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from sb3_pearl.common.adaptation import AdaptiveModel, check_adaptive
 from sb3_pearl.common.atomic import atomic_write
-from sb3_pearl.common.progress import ProgressBar
 from sb3_pearl.common.seeding import derived_seed, get_global_rng_state, seed_global_rngs, set_global_rng_state
-from sb3_pearl.common.statistics import format_summary_table, summarize
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.evaluation.progress import ProgressBar
+from sb3_pearl.evaluation.statistics import format_summary_table, summarize
 
 PAPER_KS = (0, 1, 3, 5)
 ROW_COLUMNS = ("task", "repeat", "k", "return", "cost", "length", "violated")
@@ -79,7 +79,7 @@ class MetaTestResult:
     Result of :func:`meta_test`.
 
     :param rows: one dict per (task, repeat, k) with :data:`ROW_COLUMNS` and the family extras found
-    :param summary: one dict per k (:func:`sb3_pearl.common.statistics.summarize`)
+    :param summary: one dict per k (:func:`sb3_pearl.evaluation.statistics.summarize`)
     :param tasks: the test tasks, in row order of ``task``
     :param traces: per-step info traces (``{"task", "repeat", "k", <key>: [...]}``)
     :param config: the protocol settings (n_adapt, n_repeats, deterministic, the family's info keys, ...)
@@ -319,7 +319,7 @@ def meta_test(
     :param model: any object with ``reset_adaptation``, ``observe``, ``adapt`` and ``predict``
         (:class:`~sb3_pearl.common.adaptation.AdaptiveModel`)
     :param env: a task-family env (gymnasium env, possibly wrapped, or a VecEnv of one env)
-    :param tasks: the test tasks (e.g. ``model.test_tasks``, see :func:`get_test_tasks`)
+    :param tasks: the test tasks (a trained model's: :func:`sb3_pearl.evaluation.held_out.held_out_tasks`)
     :param n_adapt: last trajectory index K: trajectories k = 0..K are rolled out per task
     :param n_repeats: repeats of the whole sequence per task (the context is cleared for each)
     :param deterministic: deterministic actions (ignored for models with ``stochastic_adaptation = True``,
@@ -336,7 +336,7 @@ def meta_test(
         model of the same latent size; every trajectory's reset is seeded from (crn_seed, task index,
         repeat, k) (instead of ``seed``). The global RNG states are restored afterwards. None: off
     :param progress_bar: show a progress bar over the trajectories, with the ETA
-        (:class:`~sb3_pearl.common.progress.ProgressBar`)
+        (:class:`~sb3_pearl.evaluation.progress.ProgressBar`)
     :param description: the bar's text (e.g. what Ctrl-C does)
     :param n_prior_trajectories: trajectories rolled out before the first ``adapt()`` (1, the default: only k = 0
         acts with the prior; the PEARL reference's ``num_exp_traj_eval``: its first trajectories each act with a fresh
@@ -406,48 +406,12 @@ def meta_test(
     return MetaTestResult(rows=rows, summary=summary, tasks=list(tasks), traces=traces, config=config)
 
 
-def get_test_tasks(
-    model: Any,
-    env: gym.Env | VecEnv | None = None,
-    n_tasks: int | None = None,
-    seed: int | None = None,
-    sample: bool = False,
-) -> list[Task]:
-    """
-    The held-out tasks of a meta-test.
-
-    By default the model's saved ``test_tasks`` (the first ``n_tasks`` of them). With ``sample=True``
-    (or a model without test tasks) ``n_tasks`` tasks are drawn from ``env.sample_tasks(n, seed)``,
-    e.g. from an env built with other ranges for a shifted test distribution.
-
-    :param model: the trained model
-    :param env: the env to sample from
-    :param n_tasks: number of tasks (None: all saved ones; required when sampling)
-    :param seed: seed of the draw
-    :param sample: draw from the env instead of using the saved list
-    :return: task dicts
-    """
-    saved = list(getattr(model, "test_tasks", None) or [])
-    if not sample and saved:
-        return saved if n_tasks is None else saved[:n_tasks]
-    if env is None:
-        raise ValueError("get_test_tasks: the model has no saved test tasks: pass an env to sample them from")
-    n = n_tasks if n_tasks is not None else (len(saved) or 10)
-    if isinstance(env, VecEnv):
-        return list(env.env_method("sample_tasks", n, seed, indices=[0])[0])
-    base = env.unwrapped
-    if not callable(getattr(base, "sample_tasks", None)):
-        raise ValueError(f"{type(base).__name__} has no sample_tasks(): the meta-test needs a task-family env")
-    return list(base.sample_tasks(n, seed))  # type: ignore[attr-defined]
-
-
 __all__ = [
     "PAPER_KS",
     "ROW_COLUMNS",
     "STEP_TRACE_KEYS_ATTR",
     "TRAJECTORY_INFO_KEYS_ATTR",
     "MetaTestResult",
-    "get_test_tasks",
     "meta_test",
     "rollout",
 ]

@@ -13,7 +13,7 @@ scripted candidates (``sb3_pearl.envs.safe_point_goal.SCRIPTED_PRIORS``) bound w
 Prints, per crash penalty, the mean return and the violation rate over ``--n-tasks`` tasks drawn by the
 env's own ``sample_tasks`` (seed ``--seed``), through the meta-test protocol:
 
-    python benchmarks/safe_point_scripted_prior.py --n-tasks 500
+    python studies/safe_point_scripted_prior.py --n-tasks 500
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ import argparse
 import gymnasium as gym
 
 import sb3_pearl  # noqa: F401  (registers the envs)
-from sb3_pearl.common.meta_test import meta_test
-from sb3_pearl.common.scripted import ScriptedPolicy
 from sb3_pearl.envs.safe_point_goal import SCRIPTED_PRIORS
+from sb3_pearl.evaluation.meta_test import meta_test
+from sb3_pearl.evaluation.scripted import ScriptedPolicy
 
 ENV_ID = "SafePointGoalMeta-v0"
 

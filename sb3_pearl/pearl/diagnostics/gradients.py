@@ -2,7 +2,7 @@
 
 :func:`actor_gradient_conflict` compares one step's gradients; :func:`record_gradient_conflict` logs them
 during training (``train/grad_conflict_*``, called from ``PEARL.train``); :func:`compute_gradient_conflict`
-averages them over meta-batches for :func:`~sb3_pearl.common.diagnostics.compute_diagnostics`.
+averages them over meta-batches for :func:`~sb3_pearl.pearl.diagnostics.compute_diagnostics`.
 """
 
 from __future__ import annotations

@@ -12,14 +12,17 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import check_adaptive
 from sb3_pearl.common.atomic import atomic_write
-from sb3_pearl.common.meta_test import MetaTestResult, get_test_tasks, meta_test
-from sb3_pearl.common.statistics import SUMMARY_COLUMNS
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, default_n_tasks, held_out_tasks, run_meta_test
+from sb3_pearl.evaluation.meta_test import MetaTestResult
+from sb3_pearl.evaluation.statistics import SUMMARY_COLUMNS
 
 
 class MetaTestCallback(BaseCallback):
     """
-    Run the meta-test protocol (:func:`sb3_pearl.common.meta_test.meta_test`) every ``eval_freq`` calls.
+    Run the meta-test protocol every ``eval_freq`` calls, on the tasks and with the seeding of every meta-test of a
+    trained model (:mod:`sb3_pearl.evaluation.held_out`: ``eval_env.sample_tasks(n_tasks, eval_seed)``, common random
+    numbers from ``eval_seed``), so consecutive evaluations differ only by the model.
 
     The numbers go to the model's logger under ``meta_test/``: ``return_k<k>``,
     ``violation_rate_k<k>``, ``cvar10_k<k>`` for every k, plus ``return_prior`` (k = 0) and
@@ -29,13 +32,13 @@ class MetaTestCallback(BaseCallback):
 
     :param eval_env: a task-family env (gymnasium env or a VecEnv of one env)
     :param eval_freq: evaluate every ``eval_freq`` calls (one call per VecEnv step); <= 0 disables
-    :param n_tasks: test tasks per evaluation (None: all of the model's test tasks)
+    :param n_tasks: test tasks per evaluation (None: as many as the model's ``n_test_tasks``)
     :param n_adapt: last trajectory index K (k = 0..K)
     :param n_repeats: repeats per task
     :param deterministic: deterministic actions
-    :param tasks: explicit test tasks (default: the model's ``test_tasks``)
-    :param sample_tasks: draw ``n_tasks`` tasks from ``eval_env`` (a shifted distribution) instead
-    :param seed: seed of the task draw and of the env's first reset
+    :param tasks: explicit test tasks (default: the held-out tasks drawn from ``eval_env`` with ``eval_seed``; an
+        ``eval_env`` built with other ranges gives a shifted distribution)
+    :param eval_seed: seed of the task draw, of the resets and of the common random numbers
     :param best_model_save_path: folder of ``best_model.zip`` (None: not saved)
     :param log_path: folder of ``meta_test_history.csv`` (None: not written)
     :param verbose: 0 silent, 1 a progress bar and one line per evaluation
@@ -50,8 +53,7 @@ class MetaTestCallback(BaseCallback):
         n_repeats: int = 1,
         deterministic: bool = True,
         tasks: list[Task] | None = None,
-        sample_tasks: bool = False,
-        seed: int | None = None,
+        eval_seed: int = DEFAULT_EVAL_SEED,
         best_model_save_path: str | None = None,
         log_path: str | None = None,
         verbose: int = 1,
@@ -64,8 +66,7 @@ class MetaTestCallback(BaseCallback):
         self.n_repeats = n_repeats
         self.deterministic = deterministic
         self.tasks = tasks
-        self.sample_tasks = sample_tasks
-        self.seed = seed
+        self.eval_seed = eval_seed
         self.best_model_save_path = best_model_save_path
         self.log_path = log_path
         self.best_mean_reward = -float("inf")
@@ -76,7 +77,9 @@ class MetaTestCallback(BaseCallback):
     def _init_callback(self) -> None:
         check_adaptive(self.model)
         if self.tasks is None:
-            self.tasks = get_test_tasks(self.model, self.eval_env, self.n_tasks, self.seed, sample=self.sample_tasks)
+            n_tasks = self.n_tasks or default_n_tasks(self.model)
+            train_tasks = list(getattr(self.model, "train_tasks", None) or [])
+            self.tasks = held_out_tasks(self.eval_env, n_tasks, self.eval_seed, train_tasks, "MetaTestCallback")
         for folder in (self.best_model_save_path, self.log_path):
             if folder is not None:
                 os.makedirs(folder, exist_ok=True)
@@ -89,14 +92,13 @@ class MetaTestCallback(BaseCallback):
     def evaluate(self) -> MetaTestResult:
         """Run the protocol now, log it and keep the best model."""
         assert self.tasks is not None
-        result = meta_test(
+        settings = {"n_adapt": self.n_adapt, "n_repeats": self.n_repeats, "deterministic": self.deterministic}
+        result = run_meta_test(
             self.model,
             self.eval_env,
             self.tasks,
-            n_adapt=self.n_adapt,
-            n_repeats=self.n_repeats,
-            deterministic=self.deterministic,
-            seed=self.seed,
+            settings,
+            self.eval_seed,
             progress_bar=self.verbose >= 1,
             description="Meta-test (Ctrl-C stops training)",
         )

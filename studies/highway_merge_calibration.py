@@ -6,7 +6,7 @@ parameters and the mean main-lane speed and spacing measured (a) on the traffic 
 lane) so Hidas yielding is included (with that naive policy's crash rate), and (c) with highway-env's default
 headway and jam distance (T = 1.5 s, d0 = 10 m) for contrast.
 
-    python benchmarks/highway_merge_calibration.py [--episodes 5]
+    python studies/highway_merge_calibration.py [--episodes 5]
 """
 
 from __future__ import annotations

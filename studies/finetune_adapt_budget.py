@@ -8,7 +8,7 @@ Prints, per setting, the mean return per k, the tasks better at k = K than at k 
 meta-test, wall and CPU (one thread: the CPU time is the wall time on an idle core, which matters on a
 shared machine), and writes them as JSON.
 
-    python benchmarks/finetune_adapt_budget.py --env PointGoalMeta-v0 --steps 6000 --adapt-steps 200 100 50 25
+    python studies/finetune_adapt_budget.py --env PointGoalMeta-v0 --steps 6000 --adapt-steps 200 100 50 25
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import torch as th
 import yaml
 
 import sb3_pearl  # noqa: F401  (registers the task families)
-from sb3_pearl.common.meta_test import meta_test
+from sb3_pearl.evaluation.meta_test import meta_test
 from sb3_pearl.finetune import FineTune
 from sb3_pearl.zoo import default_config
 from sb3_pearl.zoo.safe_config import parse_dict_string

@@ -10,10 +10,10 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_pearl.common.diagnostics.rollouts import _CALIBRATION, rollout_with_z
 from sb3_pearl.common.seeding import derived_seed
 from sb3_pearl.common.soft_actor_critic import evaluate_policy, q_of_actions, q_of_policy, soft_value
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.pearl.diagnostics.rollouts import _CALIBRATION, rollout_with_z
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL

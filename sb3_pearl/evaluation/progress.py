@@ -10,7 +10,7 @@
   after the last gradient step, and shows the ETA of the same cost model. PEARL's ``train()`` tells it about
   every gradient step (``gradient_step_callback``), so the bar also moves during the gradient steps.
 - :class:`ProgressBar`: one rich progress bar; bars open at the same time share one live display (rich allows
-  one), e.g. an in-training meta-test under the training bar. :func:`~sb3_pearl.common.meta_test.meta_test`
+  one), e.g. an in-training meta-test under the training bar. :func:`~sb3_pearl.evaluation.meta_test.meta_test`
   uses it with ``progress_bar=True``.
 """
 

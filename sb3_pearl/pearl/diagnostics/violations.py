@@ -9,9 +9,9 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_pearl.common.diagnostics.rollouts import _VIOLATION, _ZERO, rollout_with_z
 from sb3_pearl.common.seeding import derived_seed
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.pearl.diagnostics.rollouts import _VIOLATION, _ZERO, rollout_with_z
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL

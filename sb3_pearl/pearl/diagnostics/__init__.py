@@ -35,14 +35,14 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_pearl.common.diagnostics.calibration import compute_calibration
-from sb3_pearl.common.diagnostics.gradients import actor_gradient_conflict, compute_gradient_conflict, record_gradient_conflict
-from sb3_pearl.common.diagnostics.overlap import CV_FOLDS as CV_FOLDS
-from sb3_pearl.common.diagnostics.overlap import KNN_NEIGHBOURS as KNN_NEIGHBOURS
-from sb3_pearl.common.diagnostics.overlap import compute_overlap, gaussian_classifier_auc, knn_classifier_auc, roc_auc
-from sb3_pearl.common.diagnostics.rollouts import FixedZRollout, _collect_context, _posteriors, rollout_with_z
-from sb3_pearl.common.diagnostics.violations import compute_violations
 from sb3_pearl.common.seeding import get_global_rng_state, seed_global_rngs, set_global_rng_state
+from sb3_pearl.pearl.diagnostics.calibration import compute_calibration
+from sb3_pearl.pearl.diagnostics.gradients import actor_gradient_conflict, compute_gradient_conflict, record_gradient_conflict
+from sb3_pearl.pearl.diagnostics.overlap import CV_FOLDS as CV_FOLDS
+from sb3_pearl.pearl.diagnostics.overlap import KNN_NEIGHBOURS as KNN_NEIGHBOURS
+from sb3_pearl.pearl.diagnostics.overlap import compute_overlap, gaussian_classifier_auc, knn_classifier_auc, roc_auc
+from sb3_pearl.pearl.diagnostics.rollouts import FixedZRollout, _collect_context, _posteriors, rollout_with_z
+from sb3_pearl.pearl.diagnostics.violations import compute_violations
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL

@@ -71,7 +71,7 @@ def summarize(rows: Sequence[dict[str, Any]], alpha: float = 0.1, extra_keys: Se
     - ``<key>_mean`` for every key of ``extra_keys`` present in the rows (numeric family extras such
       as the merge family's ``b_min``; nan values ignored).
 
-    :param rows: rows as produced by :func:`sb3_pearl.common.meta_test.meta_test`
+    :param rows: rows as produced by :func:`sb3_pearl.evaluation.meta_test.meta_test`
     :param alpha: tail share of the CVaR
     :param extra_keys: per-trajectory entries to average, in this order
     :return: one dict per k, in increasing k

@@ -5,10 +5,10 @@ For families whose observation is the 2-D position (``PointGoalMeta-v0``, ``Safe
 whether the prior policy heads for *some* goal (PEARL's behaviour: z0 acts as a task) or keeps clear of
 the region where any task's hazard may lie (what PEARL+'s prior term should teach).
 
-The rollouts derive their env seeds as :func:`~sb3_pearl.common.diagnostics.violations.compute_violations` does
+The rollouts derive their env seeds as :func:`~sb3_pearl.pearl.diagnostics.violations.compute_violations` does
 (``derived_seed(seed, _VIOLATION, draw, task)``): given the same task list and z0 draws, in the same order, they
 are the trajectories it counts. (The point families reset to the origin, so the seeds do not change them.)
-``python -m sb3_pearl.diagnose RUN --paths out.png`` draws them (:func:`sb3_pearl.plots.plot_prior_paths`).
+``python -m sb3_pearl.diagnose RUN --paths out.png`` draws them (:func:`sb3_pearl.evaluation.figures.plot_prior_paths`).
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_pearl.common.diagnostics.rollouts import _VIOLATION, FixedZRollout, rollout_with_z
 from sb3_pearl.common.seeding import derived_seed
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.pearl.diagnostics.rollouts import _VIOLATION, FixedZRollout, rollout_with_z
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL

@@ -1,0 +1,73 @@
+"""``train.py``'s own flags, on top of rl_zoo3's: ``--budget PRESET`` and ``--resume CHECKPOINT``, plus the checks of
+``--env`` and ``-n`` before rl_zoo3 parses anything (docs/cli.md)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+from typing import NamedTuple
+
+from sb3_pearl.zoo import usage
+from sb3_pearl.zoo.budget import budget_hyperparams
+from sb3_pearl.zoo.usage import UsageError, check_env_id
+
+PROJECT_FLAGS_HELP = """
+sb3-pearl flags (docs/cli.md):
+  --budget PRESET       train with the env's entry of a budget preset instead of zoo_hyperparams/<algo>.yml:
+                        cpu (one run <= 45 min on one core), smoke (seconds) or paper
+                        (sb3_pearl/config/presets/; -n and -params still override it)
+  --resume CHECKPOINT   continue a --save-freq checkpoint (or a run's model) up to n_timesteps in all, with its
+                        replay buffer and RNG states"""
+
+
+class ProjectFlags(NamedTuple):
+    """The command line split: what rl_zoo3 parses, and the project's settings for the experiment manager."""
+
+    zoo_args: list[str]  # rl_zoo3's arguments (``--resume X`` became ``--trained-agent X``, ``--budget P`` removed)
+    resume: bool  # --resume: -i continues the checkpoint's run (counters kept) up to n_timesteps in all
+    budget: str | None  # --budget PRESET: the family's entry of that budget preset replaces the YAML entry
+
+
+def parse_project_flags(args: list[str]) -> ProjectFlags:
+    """
+    Handle the project's own flags (``--resume``, ``--budget``) and check ``--env`` and ``-n``.
+
+    :param args: the command line (not changed)
+    :return: rl_zoo3's arguments and the project's settings
+    """
+    args = list(args)
+    resume, budget = False, None
+    usage.check_n_timesteps(args)
+    if "--resume" in args:
+        index = args.index("--resume")
+        if index + 1 >= len(args) or not os.path.isfile(args[index + 1]) or not args[index + 1].endswith(".zip"):
+            raise UsageError(
+                "--resume takes the checkpoint's model zip, e.g. --resume logs/pearl/Env_1/rl_model_5000_steps.zip"
+            )
+        if "-i" in args or "--trained-agent" in args:
+            raise UsageError("--resume and -i/--trained-agent exclude each other (--resume is -i that keeps the counters)")
+        args[index] = "--trained-agent"
+        resume = True
+    peek = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    peek.add_argument("--env", default=None)
+    peek.add_argument("--algo", default=None)
+    peek.add_argument("--gym-packages", nargs="+", default=[])
+    peek.add_argument("--budget", default=None)
+    known, _ = peek.parse_known_args(args)
+    for module in known.gym_packages:
+        importlib.import_module(module)
+    if known.env is not None:
+        check_env_id(known.env)
+    if "--budget" in args:
+        index = args.index("--budget")
+        if known.budget is None or known.budget.startswith("-"):
+            raise UsageError("--budget takes a budget preset name: smoke, cpu or paper")
+        del args[index : index + 2]
+        if known.algo is not None and known.env is not None:
+            budget_hyperparams(known.budget, known.env, known.algo)  # an unknown preset or entry: the error now
+        budget = known.budget
+    return ProjectFlags(args, resume, budget)
+
+
+__all__ = ["PROJECT_FLAGS_HELP", "ProjectFlags", "parse_project_flags"]

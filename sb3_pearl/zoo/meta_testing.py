@@ -1,0 +1,132 @@
+"""The meta-test in ``train.py``: the evaluation callback, the Optuna trial score and the final meta-test.
+
+:class:`MetaTestExperimentManager` is rl_zoo3's ``ExperimentManager`` where, for algorithms with the adaptation API:
+
+- the evaluation callback is :class:`~sb3_pearl.evaluation.callbacks.MetaTestCallback` (``--eval-episodes`` test tasks
+  per evaluation, k = 0..``meta_test.n_adapt``, logger keys ``meta_test/...``, ``best_model.zip``), and the callbacks
+  add the cost of the run (:class:`~sb3_pearl.evaluation.progress.TrainingProgressCallback`, also ``-P``'s bar) and
+  resumable ``--save-freq`` checkpoints;
+- Optuna trials are scored by the meta-test on validation tasks (drawn with ``eval_seed + 1``);
+- :meth:`final_meta_test` runs the meta-test of every trained model (:mod:`sb3_pearl.evaluation.held_out`) and writes
+  ``meta_test.csv``, ``meta_test.json`` and ``adaptation.png`` into the run folder.
+
+Other algorithms keep rl_zoo3's ``EvalCallback``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+from unittest import mock
+
+import rl_zoo3.exp_manager
+from rl_zoo3.exp_manager import ExperimentManager
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import CheckpointCallback, ProgressBarCallback
+
+from sb3_pearl.evaluation.callbacks import MetaTestCallback, MetaTestTrialCallback, ResumableCheckpointCallback
+from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, META_TEST_DEFAULTS, held_out_meta_test, write_meta_test
+from sb3_pearl.evaluation.meta_test import MetaTestResult
+from sb3_pearl.evaluation.progress import TrainingProgressCallback
+from sb3_pearl.zoo.budget import faster_option
+from sb3_pearl.zoo.usage import program_name
+
+# The zoo key `meta_test`: the settings of every meta-test plus the eval seed of its tasks (evaluation/held_out.py).
+ZOO_META_TEST_DEFAULTS: dict[str, Any] = {**META_TEST_DEFAULTS, "eval_seed": DEFAULT_EVAL_SEED}
+
+
+class MetaTestExperimentManager(ExperimentManager):
+    """rl_zoo3's ``ExperimentManager`` with the meta-test as its evaluation (module docstring)."""
+
+    adaptive: bool = False  # the algorithm has the adaptation API
+    budget: str | None = None  # --budget PRESET (the faster-option hint of the progress callback)
+    meta_test_kwargs: dict[str, Any]  # the `meta_test` key over ZOO_META_TEST_DEFAULTS
+
+    def create_callbacks(self) -> None:
+        if not self.adaptive:
+            super().create_callbacks()
+            return
+        eval_freq, self.eval_freq = self.eval_freq, -1  # the zoo's EvalCallback is replaced below
+        super().create_callbacks()
+        self.eval_freq = eval_freq
+        # The cost of the run (plan, measured costs, ETA) and -P's bar, counting gradient steps: callback 0, which
+        # rl_zoo3's learn() closes when training stops.
+        self.callbacks = [cb for cb in self.callbacks if not isinstance(cb, ProgressBarCallback)]
+        slow_hint = faster_option(self.env_name.gym_id, self.algo, self.budget, program_name())
+        self.callbacks.insert(0, TrainingProgressCallback(self.show_progress, slow_hint, verbose=self.verbose))
+        # --save-freq: resumable checkpoints (model with its RNG states + replay buffer, at an iteration start).
+        self.callbacks = [
+            ResumableCheckpointCallback(cb.save_freq, cb.save_path, cb.name_prefix, cb.verbose)
+            if type(cb) is CheckpointCallback
+            else cb
+            for cb in self.callbacks
+        ]
+        if self.eval_freq > 0 and not self.optimize_hyperparameters:
+            self.eval_freq = max(self.eval_freq // self.n_envs, 1)
+            if self.verbose > 0:
+                print("Creating meta-test environment")
+            self.callbacks.append(
+                MetaTestCallback(
+                    self.create_envs(1, eval_env=True),  # the protocol runs one env
+                    eval_freq=self.eval_freq,
+                    n_tasks=self.n_eval_episodes,
+                    n_adapt=self.meta_test_kwargs["n_adapt"],
+                    n_repeats=self.meta_test_kwargs["n_repeats"],
+                    deterministic=self.meta_test_kwargs["deterministic"],
+                    eval_seed=self.meta_test_kwargs["eval_seed"],
+                    best_model_save_path=self.save_path,
+                    log_path=self.save_path,
+                    verbose=self.verbose,
+                )
+            )
+
+    def hyperparameters_optimization(self) -> None:
+        if not self.adaptive:
+            super().hyperparameters_optimization()
+            return
+        settings = {key: self.meta_test_kwargs[key] for key in ("n_adapt", "n_repeats")}
+        # Trials are scored on validation tasks (drawn with eval_seed + 1), never on the final meta-test's tasks.
+        settings["eval_seed"] = self.meta_test_kwargs["eval_seed"] + 1
+        # rl_zoo3's objective() builds its TrialEvalCallback from the module's name and takes no callback class: the
+        # name is replaced for this call only (restored on exit, also on errors).
+        trial_callback = functools.partial(MetaTestTrialCallback, **settings)
+        with mock.patch.object(rl_zoo3.exp_manager, "TrialEvalCallback", trial_callback):
+            super().hyperparameters_optimization()
+
+    def final_meta_test(self, model: BaseAlgorithm) -> MetaTestResult:
+        """
+        The meta-test of every trained model (:mod:`sb3_pearl.evaluation.held_out`: held-out tasks drawn from the eval
+        env with the ``meta_test`` key's ``eval_seed``, common random numbers) after training; writes the meta-test
+        files into the run folder.
+
+        :param model: the trained model
+        :return: the result
+        """
+        settings = self.meta_test_kwargs
+        env = self.create_envs(1, eval_env=True)
+        try:
+            if self.verbose > 0:
+                print(
+                    f"Meta-test: held-out tasks drawn with eval seed {settings['eval_seed']}, k = 0..{settings['n_adapt']}, "
+                    f"{settings['n_repeats']} repeat(s)"
+                )
+            result = held_out_meta_test(
+                model,
+                env,
+                settings,
+                settings["eval_seed"],
+                what=self.env_name.gym_id,
+                progress_bar=self.verbose > 0 or self.show_progress,
+                description="Meta-test (Ctrl-C skips it)",
+            )
+        finally:
+            env.close()
+        result.config.update(algo=self.algo, env_id=self.env_name.gym_id, timesteps=int(model.num_timesteps))
+        paths = write_meta_test(result, self.save_path, title=f"{self.algo} on {self.env_name.gym_id}")
+        if self.verbose > 0:
+            print(result.format_summary())
+            print(f"Meta-test written to {paths['csv']}, {paths['json']}, {paths['png']}")
+        return result
+
+
+__all__ = ["ZOO_META_TEST_DEFAULTS", "MetaTestExperimentManager"]

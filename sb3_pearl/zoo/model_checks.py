@@ -1,0 +1,54 @@
+"""Checks that a saved model fits the env it is about to be used with (``train.py -i`` / ``--resume``, ``enjoy.py``).
+
+Both raise :class:`~sb3_pearl.zoo.usage.UsageError` (one line, exit status 2) instead of a shape error deep in torch.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from typing import Any
+
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_pearl.zoo.safe_config import load_run_yaml
+from sb3_pearl.zoo.usage import UsageError
+
+
+def check_model_env(model_path: str, env_id: str) -> None:
+    """
+    Raise a clear error (:class:`~sb3_pearl.zoo.usage.UsageError`) if the run folder of ``model_path`` says the model
+    was trained on another env.
+
+    :param model_path: path of the model zip (its folder holds ``<EnvId>/args.yml`` in the zoo layout)
+    :param env_id: the env id it is about to be used with
+    """
+    for args_path in glob.glob(os.path.join(os.path.dirname(os.path.abspath(model_path)), "*", "args.yml")):
+        saved = load_run_yaml(args_path) or {}
+        trained_env = saved.get("env")
+        if trained_env is not None and trained_env != env_id:
+            raise UsageError(f"{model_path} was trained on {trained_env}, not on {env_id} (see {args_path})")
+
+
+def check_model_spaces(model: BaseAlgorithm, env: Any, model_path: str, env_id: str) -> None:
+    """
+    Raise a clear error (:class:`~sb3_pearl.zoo.usage.UsageError`) if the model's observation / action spaces are not
+    the env's.
+
+    :param model: the loaded model
+    :param env: the env (gymnasium env or VecEnv)
+    :param model_path: for the message
+    :param env_id: for the message
+    """
+    for kind in ("observation_space", "action_space"):
+        model_space, env_space = getattr(model, kind), getattr(env, kind)
+        same = type(model_space) is type(env_space) and getattr(model_space, "shape", None) == getattr(
+            env_space, "shape", None
+        )
+        if same and hasattr(model_space, "n"):
+            same = int(model_space.n) == int(env_space.n)  # type: ignore[attr-defined]
+        if not same:
+            raise UsageError(f"{model_path} was saved for another env: its {kind} is {model_space}, {env_id} has {env_space}")
+
+
+__all__ = ["check_model_env", "check_model_spaces"]
