@@ -26,7 +26,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import ConstantSchedule, get_parameters_by_name
 from stable_baselines3.sac.policies import SACPolicy
 
-from sb3_pearl.common.adaptation import check_finite_transition, stored_action
+from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.checks import (
     check_arch,
     check_ent_coef,
@@ -34,13 +34,13 @@ from sb3_pearl.common.checks import (
     check_int,
     check_learning_rate,
     check_real,
-    check_task_counts,
     check_tau,
     is_integer,
 )
 from sb3_pearl.common.divergence import check_env_step
+from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin
-from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
+from sb3_pearl.common.tasks import env_time_limit
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.evaluation.progress import TrainingPlan
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
@@ -52,7 +52,7 @@ SelfFineTune = TypeVar("SelfFineTune", bound="FineTune")
 _ADAPTATION_STATE = ("policy", "log_ent_coef", "ent_coef_optimizer", "replay_buffer", "lr_schedule", "_n_updates", "_logger")
 
 
-class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
+class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
     """
     Fine-Tune baseline: SAC trained on the mixture of the training tasks, fine-tuned on a new task.
 
@@ -170,7 +170,7 @@ class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
         _init_setup_model: bool = True,
     ):
         # Every argument checked before anything is built (docs/reliability.md).
-        check_task_counts(n_train_tasks, n_test_tasks)
+        check_task_arguments(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
         check_int("batch_size", batch_size, 1, hint="minibatch size of meta-training")
         check_int("buffer_size", buffer_size, 1, hint="replay buffer size of meta-training")
         check_int("learning_starts", learning_starts, 0, hint="random-action steps before the first gradient step")
@@ -185,8 +185,6 @@ class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
         if target_entropy != "auto":
             check_real("target_entropy", target_entropy, hint="or 'auto'")
         check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
-        if train_tasks is not None and len(train_tasks) == 0:
-            raise ValueError("train_tasks must hold at least one task (or be None to draw them)")
         if adapt_gradient_steps < 0:
             raise ValueError(f"adapt_gradient_steps must be >= 0, got {adapt_gradient_steps}")
         if adapt_batch_size is not None and adapt_batch_size < 1:
@@ -227,10 +225,7 @@ class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
             device=device,
             _init_setup_model=False,
         )
-        self.n_train_tasks = n_train_tasks
-        self.n_test_tasks = n_test_tasks
-        self.train_tasks: list[Task] = list(train_tasks) if train_tasks is not None else []
-        self.test_tasks: list[Task] = list(test_tasks) if test_tasks is not None else []
+        self._init_meta_algorithm(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
         self.max_episode_steps = max_episode_steps
         self.adapt_gradient_steps = adapt_gradient_steps
         self.adapt_batch_size = adapt_batch_size
@@ -241,26 +236,17 @@ class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
         self._adapt_buffer: ReplayBuffer | None = None
         self._adapt_episode_steps = 0
         self.adapt_stats: dict[str, float] = {}
-        if self.env is not None:
-            self._check_env()
         if _init_setup_model:
             self._setup_model()
 
     # ------------------------------------------------------------------------------------------
     # Set-up
     # ------------------------------------------------------------------------------------------
-    def _check_env(self) -> None:
-        """Clear errors for envs Fine-Tune cannot use (its action spaces are checked by :class:`DiscreteSAC`)."""
-        check_meta_env("FineTune", self.env, self.observation_space, None, self._vec_normalize_env)
-
     def _setup_model(self) -> None:
         super()._setup_model()
-        if self.env is not None:
-            self.train_tasks, self.test_tasks = resolve_train_test_tasks(
-                self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
-            )
-            if self.max_episode_steps is None:
-                self.max_episode_steps = env_time_limit(self.env)
+        self._setup_tasks()
+        if self.env is not None and self.max_episode_steps is None:
+            self.max_episode_steps = env_time_limit(self.env)
         self.reset_adaptation()
 
     def _excluded_save_params(self) -> list[str]:
@@ -286,8 +272,7 @@ class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
     ) -> tuple[int, BaseCallback]:
         # Learning always continues from the pretrained policy, never from a fine-tuned copy.
         self.reset_adaptation()
-        if not self.train_tasks:
-            raise ValueError("FineTune has no training tasks: construct it with a task-family env or pass train_tasks")
+        self._check_train_tasks()  # before the first episodes' tasks are drawn from them
         assert self.env is not None
         will_reset = reset_num_timesteps or self._last_obs is None
         env_indices = range(self.env.num_envs)
@@ -407,16 +392,11 @@ class FineTune(ReplayBufferSaveLoadMixin, DiscreteSAC):
         :param done: the episode ended (terminated or truncated); an end at ``max_episode_steps`` steps is taken
             as a time-limit truncation (bootstrapped), any other as a terminal state
         """
-        check_finite_transition(obs, reward, next_obs)
+        obs_arr, next_obs_arr = check_observed_transition(self.observation_space, obs, reward, next_obs)
         if self._adapt_buffer is None:
             self.reset_adaptation()
         assert self._adapt_buffer is not None
-        obs_shape = self.observation_space.shape
-        assert obs_shape is not None
-        obs_arr = np.asarray(obs, dtype=np.float32)
-        next_obs_arr = np.asarray(next_obs, dtype=np.float32)
-        if obs_arr.size != int(np.prod(obs_shape)) or next_obs_arr.size != int(np.prod(obs_shape)):
-            raise ValueError(f"observe() takes one transition: obs and next_obs of shape {obs_shape}, got {np.shape(obs)}")
+        obs_shape = obs_arr.shape
         buffer_action = stored_action(self.action_space, action).reshape(1, -1)
         self._adapt_episode_steps += 1
         done = bool(np.asarray(done).reshape(-1)[0])

@@ -33,10 +33,10 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import safe_mean
 from torch.nn.utils import parameters_to_vector
 
-from sb3_pearl.common.adaptation import check_finite_transition
-from sb3_pearl.common.checks import check_arch, check_gamma, check_int, check_real, check_task_counts
+from sb3_pearl.common.checks import check_arch, check_gamma, check_int, check_real
+from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
 from sb3_pearl.common.persistence import SaveLoadMixin
-from sb3_pearl.common.tasks import check_meta_env, env_time_limit, resolve_train_test_tasks
+from sb3_pearl.common.tasks import env_time_limit
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.advantages import compute_advantages, split_task_samples
 from sb3_pearl.maml.policies import MAMLPolicy, MlpPolicy, Params
@@ -47,7 +47,7 @@ from sb3_pearl.maml.type_aliases import EpisodeBatch, OldPolicy, TaskSamples, TR
 SelfMAML = TypeVar("SelfMAML", bound="MAML")
 
 
-class MAML(SaveLoadMixin, BaseAlgorithm):
+class MAML(MetaAlgorithm, SaveLoadMixin, BaseAlgorithm):
     """
     MAML-TRPO: Model-Agnostic Meta-Learning with a TRPO outer loop (Finn et al. 2017).
     Paper: https://arxiv.org/abs/1703.03400
@@ -130,7 +130,7 @@ class MAML(SaveLoadMixin, BaseAlgorithm):
         check_int("num_inner_steps", num_inner_steps, 1, hint="inner updates per task")
         check_int("meta_batch_size", meta_batch_size, 1, hint="tasks per meta-iteration")
         check_int("episodes_per_task", episodes_per_task, 1, hint="trajectories per task before and after adaptation")
-        check_task_counts(n_train_tasks, n_test_tasks)
+        check_task_arguments(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
         if max_episode_steps is not None:
             check_int("max_episode_steps", max_episode_steps, 1, hint="or None: the env's registered time limit")
         check_gamma(gamma)
@@ -154,14 +154,13 @@ class MAML(SaveLoadMixin, BaseAlgorithm):
             support_multi_env=True,
             seed=seed,
         )
+        self._init_meta_algorithm(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
         self.inner_lr = inner_lr
         self.num_inner_steps = num_inner_steps
         self.first_order = first_order
         self.meta_batch_size = meta_batch_size
         self.episodes_per_task = episodes_per_task
         self.max_episode_steps = max_episode_steps
-        self.n_train_tasks = n_train_tasks
-        self.n_test_tasks = n_test_tasks
         self.gamma = gamma
         self.gae_lambda = gae_lambda
         self.normalize_advantage = normalize_advantage
@@ -171,25 +170,16 @@ class MAML(SaveLoadMixin, BaseAlgorithm):
         self.cg_damping = cg_damping
         self.ls_backtrack_ratio = ls_backtrack_ratio
         self.ls_max_steps = ls_max_steps
-        self.train_tasks: list[Task] = list(train_tasks) if train_tasks is not None else []
-        self.test_tasks: list[Task] = list(test_tasks) if test_tasks is not None else []
         self._task_rng: np.random.Generator | None = None
         # Adaptation state (meta-test): never saved
         self._adapt_episodes: list[Episode] = []
         self._current_episode: Episode = ([], [], [])
-
-        if self.env is not None:
-            self._check_env(self.env)
-
         if _init_setup_model:
             self._setup_model()
 
     # ------------------------------------------------------------------------------------------
     # set-up
     # ------------------------------------------------------------------------------------------
-    def _check_env(self, env: Any) -> None:
-        check_meta_env("MAML", env, self.observation_space, self.action_space, self._vec_normalize_env)
-
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
@@ -199,15 +189,12 @@ class MAML(SaveLoadMixin, BaseAlgorithm):
             raise ValueError(f"MAML needs a MAMLPolicy, got {type(self.policy).__name__}")
         if self._task_rng is None:
             self._task_rng = np.random.default_rng(self.seed)
-        if self.env is not None:
-            if self.max_episode_steps is None:
-                limit = env_time_limit(self.env)
-                if limit is None:
-                    raise ValueError("The env has no registered time limit: pass max_episode_steps to MAML")
-                self.max_episode_steps = limit
-            self.train_tasks, self.test_tasks = resolve_train_test_tasks(
-                self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
-            )
+        if self.env is not None and self.max_episode_steps is None:
+            limit = env_time_limit(self.env)
+            if limit is None:
+                raise ValueError("The env has no registered time limit: pass max_episode_steps to MAML")
+            self.max_episode_steps = limit
+        self._setup_tasks()
         self.reset_adaptation()
 
     def _excluded_save_params(self) -> list[str]:
@@ -371,8 +358,6 @@ class MAML(SaveLoadMixin, BaseAlgorithm):
 
     def _train_iteration(self, callback: BaseCallback) -> bool:
         assert self._task_rng is not None
-        if not self.train_tasks:
-            raise ValueError("MAML has no training tasks: pass an env following the task protocol or train_tasks")
         callback.on_rollout_start()  # before the task draw: a checkpoint saved here resumes exactly
         n_train = len(self.train_tasks)
         task_ids = self._task_rng.choice(n_train, size=self.meta_batch_size, replace=self.meta_batch_size > n_train)
@@ -471,13 +456,11 @@ class MAML(SaveLoadMixin, BaseAlgorithm):
         :param obs: observation, shape ``obs_shape`` (or ``(1, *obs_shape)``)
         :param action: the action sent to the env (as returned by :meth:`predict`)
         :param reward: the reward
-        :param next_obs: next observation (unused: the baseline needs no bootstrap)
+        :param next_obs: next observation (checked, not stored: the baseline needs no bootstrap)
         :param done: end of the trajectory (terminated or truncated)
         """
-        check_finite_transition(obs, reward, next_obs)
-        obs_flat = np.asarray(obs, dtype=np.float32).reshape(-1)
-        if obs_flat.shape[0] != self.policy.obs_dim:
-            raise ValueError(f"observe: expected one observation of size {self.policy.obs_dim}, got shape {np.shape(obs)}")
+        obs_arr, _ = check_observed_transition(self.observation_space, obs, reward, next_obs)
+        obs_flat = obs_arr.reshape(-1)
         stored = observed_action(self.policy, self.action_space, action)
         observations, actions, rewards = self._current_episode
         observations.append(obs_flat)

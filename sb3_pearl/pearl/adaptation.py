@@ -13,7 +13,8 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from sb3_pearl.common.adaptation import check_finite_transition, stored_action
+from sb3_pearl.common.adaptation import stored_action
+from sb3_pearl.common.meta_algorithm import check_observed_transition
 from sb3_pearl.pearl.policies import PEARLPolicy
 
 
@@ -29,6 +30,7 @@ class PosteriorAdaptationMixin:
     """The adaptation API of :class:`~sb3_pearl.PEARL` (mixed into it; uses its policy and :meth:`sample_posterior`)."""
 
     policy: PEARLPolicy
+    observation_space: spaces.Space
     action_space: spaces.Space
     device: th.device
     _adapt_context: list[tuple[np.ndarray, np.ndarray, float, np.ndarray]]
@@ -69,12 +71,7 @@ class PosteriorAdaptationMixin:
         :param next_obs: observation after the action
         :param done: whether the episode ended (not used by the encoder)
         """
-        check_finite_transition(obs, reward, next_obs)
-        obs_dim = self.policy.obs_dim
-        obs = np.asarray(obs, dtype=np.float32).reshape(-1)
-        next_obs = np.asarray(next_obs, dtype=np.float32).reshape(-1)
-        if obs.shape != (obs_dim,) or next_obs.shape != (obs_dim,):
-            raise ValueError(f"observe() takes one transition: obs and next_obs of shape ({obs_dim},)")
+        obs, next_obs = check_observed_transition(self.observation_space, obs, reward, next_obs)  # (obs_dim,) each
         self._adapt_context.append((obs, stored_action(self.action_space, action), float(reward), next_obs))
 
     def _adaptation_context(self) -> th.Tensor:

@@ -13,9 +13,10 @@ from sb3_pearl.common.checks import (
     check_int,
     check_learning_rate,
     check_real,
-    check_task_counts,
     check_tau,
 )
+from sb3_pearl.common.meta_algorithm import check_task_arguments
+from sb3_pearl.envs.task_protocol import Task
 
 PARTIAL_ITERATION_MODES = ("train", "carry")
 
@@ -34,6 +35,8 @@ def check_pearl_arguments(
     reward_scale: float,
     n_train_tasks: int,
     n_test_tasks: int,
+    train_tasks: list[Task] | None,
+    test_tasks: list[Task] | None,
     meta_batch: int,
     embedding_batch_size: int,
     num_initial_steps: int,
@@ -52,7 +55,7 @@ def check_pearl_arguments(
 
     Called before anything is built, so that a bad argument fails before an env is made.
     """
-    check_task_counts(n_train_tasks, n_test_tasks)
+    check_task_arguments(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
     for name, value, hint in (
         ("meta_batch", meta_batch, "tasks per gradient step"),
         ("batch_size", batch_size, "RL transitions per task in a gradient step"),

@@ -24,9 +24,9 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.divergence import NonFiniteUpdateGuard
+from sb3_pearl.common.meta_algorithm import MetaAlgorithm
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, check_buffer_tasks, read_replay_buffer
 from sb3_pearl.common.precision import resolve_bf16
-from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.evaluation.progress import TrainingPlan
@@ -41,13 +41,13 @@ from sb3_pearl.pearl.collection import (
     start_iteration,
 )
 from sb3_pearl.pearl.diagnostics import record_gradient_conflict
-from sb3_pearl.pearl.losses import compute_losses
+from sb3_pearl.pearl.losses import LossSettings, compute_losses
 from sb3_pearl.pearl.policies import PEARLPolicy
 
 SelfPEARL = TypeVar("SelfPEARL", bound="PEARL")
 
 
-class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
+class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
     """
     PEARL (Rakelly et al. 2019): off-policy meta-RL with probabilistic context variables.
 
@@ -121,13 +121,14 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": PEARLPolicy}
+    requires_flat_observations: ClassVar[bool] = True  # the networks take z concatenated to a flat observation
     # Parameters every PEARL / PEARL+ zip holds (load() refuses a zip without them, e.g. a SAC one).
     saved_data_keys: ClassVar[tuple[str, ...]] = ("kl_weight", "meta_batch", "num_train_steps_per_itr", "train_tasks")
     # Gradient steps in a row with a non-finite loss or gradient (each skipped) that stop training (DivergenceError).
     max_consecutive_nonfinite_updates: ClassVar[int] = 10
     policy: PEARLPolicy
     replay_buffer: MetaReplayBuffer  # type: ignore[assignment]
-    # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before set-up).
+    # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before _setup_model).
     prior_coef, prior_critic_mode, prior_data = 0.0, "none", "all"
     prior_target, prior_conservative_weight = "prior", 0.0  # the prior-critic designs (PEARLPlus, docs/pearl.md)
     # Called after every gradient step of train() while set (the progress callback sets it during learn()); never saved.
@@ -187,6 +188,8 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
             reward_scale=reward_scale,
             n_train_tasks=n_train_tasks,
             n_test_tasks=n_test_tasks,
+            train_tasks=train_tasks,
+            test_tasks=test_tasks,
             meta_batch=meta_batch,
             embedding_batch_size=embedding_batch_size,
             num_initial_steps=num_initial_steps,
@@ -210,7 +213,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
             tau=tau,
             gamma=gamma,
             gradient_steps=num_train_steps_per_itr,
-            policy_kwargs=policy_kwargs,
+            policy_kwargs=dict(policy_kwargs) if policy_kwargs is not None else None,  # a copy: entries are added below
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
@@ -218,18 +221,15 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
             seed=seed,
             support_multi_env=True,
             sde_support=False,
-            supported_action_spaces=None,  # checked in _setup_model with a ValueError
+            supported_action_spaces=None,  # checked by _init_meta_algorithm with a ValueError
         )
-        # Saved with the model: PEARL keeps the class defaults (no prior term), PEARLPlus set its own.
+        self._init_meta_algorithm(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
+        # Saved with the model: PEARL keeps the class defaults (no prior term), PEARLPlus sets its own after this.
         self.prior_coef, self.prior_critic_mode, self.prior_data = self.prior_coef, self.prior_critic_mode, self.prior_data
         self.kl_weight = kl_weight
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
         self.reward_scale = reward_scale
-        self.n_train_tasks = n_train_tasks
-        self.n_test_tasks = n_test_tasks
-        self.train_tasks: list[Task] = list(train_tasks) if train_tasks is not None else []
-        self.test_tasks: list[Task] = list(test_tasks) if test_tasks is not None else []
         self.meta_batch = meta_batch
         self.embedding_batch_size = embedding_batch_size
         self.num_initial_steps = num_initial_steps
@@ -248,8 +248,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
         self.policy_kwargs.update(
             latent_dim=latent_dim,
             use_next_obs_in_context=use_next_obs_in_context,
-            # The one switch: a prior critic is built only when the prior term uses it.
-            prior_critic=self.prior_critic_mode if self.uses_prior_term else "none",
+            prior_critic="none",  # PEARL has none; PEARLPlus sets its own
         )
         if encoder_arch is not None:
             self.policy_kwargs["encoder_arch"] = encoder_arch
@@ -268,18 +267,7 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
-        if self.env is not None:
-            check_meta_env(
-                type(self).__name__,
-                self.env,
-                self.observation_space,
-                self.action_space,
-                self._vec_normalize_env,
-                flat_observations=True,
-            )
-            self.train_tasks, self.test_tasks = resolve_train_test_tasks(
-                self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
-            )
+        self._setup_tasks()
         context_size = max(self.num_initial_steps, self.num_steps_prior + self.num_steps_posterior, 1)
         self.replay_buffer = MetaReplayBuffer(
             len(self.train_tasks) or self.n_train_tasks,
@@ -333,9 +321,38 @@ class PEARL(PosteriorAdaptationMixin, ReplayBufferSaveLoadMixin, OffPolicyAlgori
     # ------------------------------------------------------------------------------------------
     # Algorithm 1: the losses of one gradient step
     # ------------------------------------------------------------------------------------------
+    def _loss_settings(self) -> LossSettings:
+        """The coefficients and switches of a gradient step, read at each step (they may change between ``learn`` calls)."""
+        assert isinstance(self.target_entropy, float), "target_entropy is resolved by _setup_model"
+        return LossSettings(
+            gamma=self.gamma,
+            reward_scale=self.reward_scale,
+            prior_term=self.uses_prior_term,
+            prior_data=self.prior_data,
+            prior_target=self.prior_target,
+            prior_conservative_weight=self.prior_conservative_weight,
+            target_entropy=self.target_entropy,
+        )
+
     def _compute_losses(self, replay: MetaReplaySamples, context: th.Tensor, z0: th.Tensor) -> PEARLLosses:
-        """The losses of one gradient step for T tasks (:func:`sb3_pearl.pearl.losses.compute_losses`)."""
-        return compute_losses(self, replay, context, z0)
+        """
+        The losses of one gradient step for T tasks (:func:`sb3_pearl.pearl.losses.compute_losses`): task inference
+        q(z | c) on each task's context, then the critic, prior critic, actor and entropy losses.
+
+        :param replay: RL batch, tensors of leading shape (T, B)
+        :param context: context transitions (T, N, context_dim)
+        :param z0: prior latents (T, latent_dim), one per task
+        :return: the losses
+        """
+        return compute_losses(
+            self.policy,
+            replay,
+            posterior=self.sample_posterior(context),  # z carries the encoder's gradients
+            z0=z0,
+            ent_coef=self._current_ent_coef(),
+            log_ent_coef=self.log_ent_coef,
+            settings=self._loss_settings(),
+        )
 
     @staticmethod
     def _named_losses(losses: PEARLLosses) -> dict[str, th.Tensor]:

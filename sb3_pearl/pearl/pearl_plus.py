@@ -4,11 +4,9 @@ from __future__ import annotations
 
 from typing import Any, TypeVar
 
-import torch as th
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_pearl.common.checks import check_arch, check_int, check_real
-from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.pearl.pearl import PEARL
 from sb3_pearl.pearl.policies import PRIOR_CRITIC_INPUTS, PRIOR_CRITIC_MODES, PEARLPolicy
 
@@ -32,8 +30,8 @@ class PEARLPlus(PEARL):
     ``prior_coef=0`` is PEARL exactly: no prior critic is built or trained (same networks, same
     numbers as :class:`PEARL` for the same seed).
 
-    Takes every argument of :class:`PEARL`, and:
-
+    :param policy: ``"MlpPolicy"`` or a :class:`PEARLPolicy` subclass
+    :param env: an env id or env following the task protocol (as for :class:`PEARL`)
     :param prior_coef: weight ``alpha`` of the prior term (paper default 0.1); 0 gives PEARL
     :param prior_critic: ``"separate"`` (PEARL+) or ``"shared"`` (ablation PEARL+ (w/o))
     :param prior_critic_arch: hidden sizes of the prior critic (paper: [300, 300, 300]; ablation [100, 100, 100])
@@ -49,6 +47,9 @@ class PEARLPlus(PEARL):
         ``V = Q_target(s', a', z0) - alpha log pi(a' | s', z0)`` (not in the paper, off by default; docs/pearl.md)
     :param prior_conservative_weight: weight of a conservative (CQL) penalty on the prior critic: Q~ at the z0
         policy's actions minus Q~ at the stored actions (0: off, the paper; docs/pearl.md)
+    :param _init_setup_model: build the networks at construction
+    :param kwargs: every other argument is :class:`PEARL`'s (``learning_rate``, ``latent_dim``, ``kl_weight``,
+        ``n_train_tasks``, ``meta_batch``, ``policy_kwargs``, ``seed``, ...), passed by name, with its defaults
 
     The prior-critic designs compared in docs/pearl.md ("Prior-critic designs") combine ``prior_n_critics`` (2: twin
     minimum; 5: a pessimistic ensemble), ``prior_data``, ``prior_critic_input``, ``prior_target`` and
@@ -59,11 +60,7 @@ class PEARLPlus(PEARL):
         self,
         policy: str | type[PEARLPolicy],
         env: GymEnv | str,
-        learning_rate: float | Schedule = 3e-4,
-        buffer_size: int = 100_000,
-        batch_size: int = 256,
-        tau: float = 0.005,
-        gamma: float = 0.99,
+        *,
         prior_coef: float = 0.1,
         prior_critic: str = "separate",
         prior_critic_arch: list[int] | None = None,
@@ -72,35 +69,8 @@ class PEARLPlus(PEARL):
         prior_critic_input: str = "state_z0",
         prior_target: str = "prior",
         prior_conservative_weight: float = 0.0,
-        latent_dim: int = 5,
-        kl_weight: float = 0.1,
-        use_next_obs_in_context: bool = False,
-        encoder_arch: list[int] | None = None,
-        ent_coef: str | float = 1.0,
-        target_entropy: str | float = "auto",
-        reward_scale: float = 5.0,
-        n_train_tasks: int = 100,
-        n_test_tasks: int = 30,
-        train_tasks: list[Task] | None = None,
-        test_tasks: list[Task] | None = None,
-        meta_batch: int = 16,
-        embedding_batch_size: int = 100,
-        num_initial_steps: int = 2000,
-        num_tasks_sample: int = 5,
-        num_steps_prior: int = 400,
-        num_steps_posterior: int = 0,
-        num_extra_rl_steps_posterior: int = 600,
-        num_train_steps_per_itr: int = 2000,
-        use_bf16: bool | str = False,
-        grad_conflict_log_freq: int = 0,
-        partial_iteration: str = "train",
-        policy_kwargs: dict[str, Any] | None = None,
-        stats_window_size: int = 100,
-        tensorboard_log: str | None = None,
-        verbose: int = 0,
-        seed: int | None = None,
-        device: th.device | str = "auto",
         _init_setup_model: bool = True,
+        **kwargs: Any,
     ):
         check_real("prior_coef", prior_coef, 0.0, hint="the paper's alpha, default 0.1; 0 gives PEARL")
         check_arch("prior_critic_arch", prior_critic_arch)
@@ -131,53 +101,22 @@ class PEARLPlus(PEARL):
                 "prior_critic_input, prior_target and prior_conservative_weight configure the separate prior critic: "
                 "prior_critic='shared' has none (use prior_critic='separate')"
             )
-        # Set before PEARL's constructor, which builds the prior critic only when the prior term uses it.
+        super().__init__(policy, env, _init_setup_model=False, **kwargs)
         self.prior_coef = prior_coef
         self.prior_critic_mode = prior_critic
         self.prior_data = prior_data
         self.prior_target = prior_target
         self.prior_conservative_weight = float(prior_conservative_weight)
-        policy_kwargs = {**(policy_kwargs or {}), "prior_n_critics": prior_n_critics, "prior_critic_input": prior_critic_input}
-        if prior_critic_arch is not None:
-            policy_kwargs["prior_critic_arch"] = prior_critic_arch
-        super().__init__(
-            policy,
-            env,
-            learning_rate=learning_rate,
-            buffer_size=buffer_size,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            latent_dim=latent_dim,
-            kl_weight=kl_weight,
-            use_next_obs_in_context=use_next_obs_in_context,
-            encoder_arch=encoder_arch,
-            ent_coef=ent_coef,
-            target_entropy=target_entropy,
-            reward_scale=reward_scale,
-            n_train_tasks=n_train_tasks,
-            n_test_tasks=n_test_tasks,
-            train_tasks=train_tasks,
-            test_tasks=test_tasks,
-            meta_batch=meta_batch,
-            embedding_batch_size=embedding_batch_size,
-            num_initial_steps=num_initial_steps,
-            num_tasks_sample=num_tasks_sample,
-            num_steps_prior=num_steps_prior,
-            num_steps_posterior=num_steps_posterior,
-            num_extra_rl_steps_posterior=num_extra_rl_steps_posterior,
-            num_train_steps_per_itr=num_train_steps_per_itr,
-            use_bf16=use_bf16,
-            grad_conflict_log_freq=grad_conflict_log_freq,
-            partial_iteration=partial_iteration,
-            policy_kwargs=policy_kwargs,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            verbose=verbose,
-            seed=seed,
-            device=device,
-            _init_setup_model=_init_setup_model,
+        self.policy_kwargs.update(
+            # The one switch: a prior critic is built only when the prior term uses it.
+            prior_critic=self.prior_critic_mode if self.uses_prior_term else "none",
+            prior_n_critics=prior_n_critics,
+            prior_critic_input=prior_critic_input,
         )
+        if prior_critic_arch is not None:
+            self.policy_kwargs["prior_critic_arch"] = prior_critic_arch
+        if _init_setup_model:
+            self._setup_model()
 
     def learn(
         self: SelfPEARLPlus,

@@ -1,0 +1,186 @@
+"""The frame every meta-RL algorithm of the project shares: task sets, meta-env and adaptation checks, training plan.
+
+PEARL / PEARL+ (SB3's ``OffPolicyAlgorithm``), Fine-Tune (SAC) and MAML (``BaseAlgorithm``) train and adapt each in
+their own way; :class:`MetaAlgorithm` holds what they have in common, written once:
+
+- the task sets: ``n_train_tasks`` training and ``n_test_tasks`` held-out test tasks, drawn in one
+  ``env.sample_tasks(n_train_tasks + n_test_tasks, seed)`` call with the model seed (so a seed gives every algorithm the
+  same tasks), or explicit ``train_tasks`` / ``test_tasks`` (:func:`~sb3_pearl.common.tasks.resolve_train_test_tasks`);
+- the checks: the task arguments (:func:`check_task_arguments`, before anything is built), the env as a task family the
+  algorithm can use (:func:`~sb3_pearl.common.tasks.check_meta_env`), a training task to learn on, and the transitions
+  handed to the adaptation API's ``observe()`` (:func:`check_observed_transition`);
+- :attr:`MetaAlgorithm.stochastic_adaptation`: how the meta-test protocol rolls the model out;
+- :meth:`MetaAlgorithm.training_plan`: what ``learn(total_timesteps)`` will still collect and train.
+
+An algorithm mixes :class:`MetaAlgorithm` in before its SB3 base class and calls, in this order:
+:func:`check_task_arguments` with its other argument checks, ``super().__init__(...)``,
+:meth:`~MetaAlgorithm._init_meta_algorithm`, and :meth:`~MetaAlgorithm._setup_tasks` in its ``_setup_model``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.type_aliases import MaybeCallback
+
+from sb3_pearl.common.adaptation import check_finite_transition
+from sb3_pearl.common.checks import check_task_counts
+from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
+from sb3_pearl.envs.task_protocol import Task
+
+if TYPE_CHECKING:
+    from stable_baselines3.common.base_class import BaseAlgorithm
+
+    from sb3_pearl.evaluation.progress import TrainingPlan
+
+    _AlgorithmBase = BaseAlgorithm
+else:
+    _AlgorithmBase = object
+
+
+def check_task_arguments(
+    n_train_tasks: Any,
+    n_test_tasks: Any,
+    train_tasks: list[Task] | None,
+    test_tasks: list[Task] | None,
+) -> None:
+    """
+    Raise a ValueError for task arguments out of range (called before anything is built).
+
+    Explicit tasks are checked against the env's task family later, when the env is known
+    (:func:`~sb3_pearl.common.tasks.check_tasks`).
+
+    :param n_train_tasks: training tasks to draw (>= 1)
+    :param n_test_tasks: held-out test tasks to draw with them (>= 0)
+    :param train_tasks: explicit training tasks (None: draw them); an empty list is refused
+    :param test_tasks: explicit test tasks (None: draw them)
+    """
+    check_task_counts(n_train_tasks, n_test_tasks)
+    if train_tasks is not None and len(train_tasks) == 0:
+        raise ValueError("train_tasks must hold at least one task (or be None to draw them)")
+
+
+def check_observed_transition(
+    observation_space: spaces.Space, obs: Any, reward: Any, next_obs: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """
+    The checks of one transition handed to ``observe()`` (the adaptation API): finite values, one observation each.
+
+    :param observation_space: the model's observation space (a Box)
+    :param obs: observation the action was taken in
+    :param reward: reward of the step
+    :param next_obs: observation after the step
+    :return: ``obs`` and ``next_obs`` as float32 arrays of the observation space's shape
+    """
+    check_finite_transition(obs, reward, next_obs)
+    shape = observation_space.shape
+    assert shape is not None
+    obs_arr = np.asarray(obs, dtype=np.float32)
+    next_obs_arr = np.asarray(next_obs, dtype=np.float32)
+    size = int(np.prod(shape))
+    if obs_arr.size != size or next_obs_arr.size != size:
+        raise ValueError(
+            f"observe() takes one transition: obs and next_obs of shape {tuple(shape)}, "
+            f"got {np.shape(obs)} and {np.shape(next_obs)}"
+        )
+    return obs_arr.reshape(shape), next_obs_arr.reshape(shape)
+
+
+class MetaAlgorithm(_AlgorithmBase):
+    """
+    The frame of a meta-RL algorithm (module docstring): its task sets, checks and training plan.
+
+    A mixin: put it before the SB3 base class (and after the adaptation mixins). Its attributes
+    (:attr:`n_train_tasks`, :attr:`n_test_tasks`, :attr:`train_tasks`, :attr:`test_tasks`) are saved with the model.
+    """
+
+    # Read by the meta-test protocol (sb3_pearl.evaluation.meta_test): True makes it roll the model out with its
+    # stochastic policy even when deterministic trajectories are asked for (MAML: an inner policy-gradient step
+    # learns nothing from deterministic ones).
+    stochastic_adaptation: ClassVar[bool] = False
+    # The algorithm's networks take flat observations only (a Box of shape (obs_dim,)): checked with the env.
+    requires_flat_observations: ClassVar[bool] = False
+
+    n_train_tasks: int
+    n_test_tasks: int
+    train_tasks: list[Task]
+    test_tasks: list[Task]
+
+    def _init_meta_algorithm(
+        self,
+        n_train_tasks: int,
+        n_test_tasks: int,
+        train_tasks: list[Task] | None,
+        test_tasks: list[Task] | None,
+    ) -> None:
+        """
+        Set the task arguments and check the env (if any) is a task family the algorithm can use; called in
+        ``__init__`` after ``super().__init__`` (SB3's, which wraps the env), before ``_setup_model``.
+
+        :param n_train_tasks: training tasks to draw
+        :param n_test_tasks: held-out test tasks to draw with them
+        :param train_tasks: explicit training tasks (None: draw them)
+        :param test_tasks: explicit test tasks (None: draw them)
+        """
+        self.n_train_tasks = n_train_tasks
+        self.n_test_tasks = n_test_tasks
+        self.train_tasks = list(train_tasks) if train_tasks is not None else []
+        self.test_tasks = list(test_tasks) if test_tasks is not None else []
+        if self.env is not None:
+            check_meta_env(
+                type(self).__name__,
+                self.env,
+                self.observation_space,
+                self.action_space,
+                self._vec_normalize_env,
+                flat_observations=self.requires_flat_observations,
+            )
+
+    def _setup_tasks(self) -> None:
+        """
+        The task sets, in ``_setup_model``: explicit ones checked against the env, else drawn with the model seed.
+
+        Without an env (``load`` without one) the saved task sets stay as they are.
+        """
+        if self.env is not None:
+            self.train_tasks, self.test_tasks = resolve_train_test_tasks(
+                self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
+            )
+
+    def _check_train_tasks(self) -> None:
+        """Raise a clear error when there is no training task to learn on."""
+        if not self.train_tasks:
+            raise ValueError(
+                f"{type(self).__name__} has no training tasks: construct it with a task-family env "
+                "(e.g. gym.make('SafePointGoalMeta-v0')) or pass train_tasks"
+            )
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        self._check_train_tasks()
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def training_plan(self, total_timesteps: int) -> TrainingPlan | None:
+        """
+        What ``learn(total_timesteps)`` will still collect and train, for the progress callback's announcement and
+        ETA (:class:`~sb3_pearl.evaluation.progress.TrainingProgressCallback`); None when it is not known ahead.
+
+        The frame does not know it (MAML's: a meta-iteration lasts until its episodes end); PEARL / PEARL+ and
+        Fine-Tune override this with their own schedules.
+
+        :param total_timesteps: the ``learn`` budget, counted from 0 (a resumed run plans what is left)
+        :return: the plan, or None
+        """
+        return None
+
+
+__all__ = ["MetaAlgorithm", "check_observed_transition", "check_task_arguments"]
