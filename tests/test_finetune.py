@@ -310,6 +310,7 @@ def test_clear_errors() -> None:
 # ----------------------------------------------------------------------------------------------
 # Learning check
 # ----------------------------------------------------------------------------------------------
+@pytest.mark.slow  # a learning check (5 min of one core under load): make test-slow
 def test_fine_tuning_improves_the_return_on_held_out_point_goals() -> None:
     """
     Pretrain on the goal mixture (2,000 steps), then on 4 held-out goals: deterministic trajectories,
