@@ -337,7 +337,12 @@ def test_experiments_are_declared() -> None:
         "prior-critic",
         "prior-critic-walker",
         "pearl-reference",
+        "merge-premise",
     }
+    premise = get_experiment("merge-premise")  # only the entropy setting differs from table1's PEARL, which it shares
+    fixed = premise.variant("pearl-fixed-entropy")
+    assert fixed.algo == "pearl" and dict(fixed.overrides) == {"ent_coef": 1.0, "reward_scale": 5.0}
+    assert premise.shared == {"pearl": "table1"} and premise.eval_seed == get_experiment("table1").eval_seed
     table1 = get_experiment("table1")
     assert {f.name for f in table1.families} == {"walker2d-vel", "ant3d-vel", "highway-merge"}
     assert {v.algo for v in table1.variants} == {"pearl", "pearlplus", "finetune", "maml"}

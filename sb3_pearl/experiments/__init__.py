@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from sb3_pearl.experiments.budgets import PRESETS, load_budget
 from sb3_pearl.experiments.families import FAMILIES, get_family
+from sb3_pearl.experiments.merge_premise import MERGE_PREMISE
 from sb3_pearl.experiments.pearl_reference import PEARL_REFERENCE
 from sb3_pearl.experiments.prior_critic import PRIOR_CRITIC, PRIOR_CRITIC_WALKER
 from sb3_pearl.experiments.safe_point import SAFE_POINT_EXPERIMENT
@@ -24,7 +25,17 @@ from sb3_pearl.experiments.table2 import TABLE2
 from sb3_pearl.experiments.table3 import TABLE3
 
 EXPERIMENTS: dict[str, Experiment] = {
-    e.name: e for e in (TABLE1, TABLE2, TABLE3, SAFE_POINT_EXPERIMENT, PRIOR_CRITIC, PRIOR_CRITIC_WALKER, PEARL_REFERENCE)
+    e.name: e
+    for e in (
+        TABLE1,
+        TABLE2,
+        TABLE3,
+        SAFE_POINT_EXPERIMENT,
+        PRIOR_CRITIC,
+        PRIOR_CRITIC_WALKER,
+        PEARL_REFERENCE,
+        MERGE_PREMISE,
+    )
 }
 for _experiment in EXPERIMENTS.values():
     check_shared(_experiment, EXPERIMENTS)
