@@ -30,8 +30,9 @@ import torch as th
 
 import sb3_pearl  # noqa: F401  (registers the task families)
 from sb3_pearl.evaluation.meta_test import meta_test
-from sb3_pearl.experiments.budgets import algo_class, load_budget, model_kwargs, preset_entries
+from sb3_pearl.experiments.budgets import load_budget, model_kwargs, preset_entries
 from sb3_pearl.experiments.families import get_family
+from sb3_pearl.registry import algorithm_class
 
 
 def pearl_gradient_steps(budget: dict[str, Any]) -> int:
@@ -73,7 +74,7 @@ def measure(
     env_kwargs = dict(family.env_kwargs)
     horizon = int(gym.spec(family.env_id).max_episode_steps or 200)
     kwargs = model_kwargs(budget["kwargs"])
-    cls = algo_class(algo)
+    cls = algorithm_class(algo)
     out: dict[str, float] = {}
     if algo in ("pearl", "pearlplus"):
         probe = {

@@ -183,6 +183,21 @@ def test_yaml_key_the_algorithm_does_not_take(tmp_path: Path) -> None:
     assert proc.returncode != 0 and "['prior_coef']" in proc.stderr
 
 
+def test_held_out_tasks_that_are_training_tasks_are_refused_before_training(tmp_path: Path) -> None:
+    """--seed equal to the meta-test's eval seed draws the test tasks among the training tasks: exit 2, nothing trained."""
+    proc = run(
+        "train.py",
+        *("--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "--seed", "10000", "-n", "200", "-params", *TINY_PARAMS),
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "drawn with eval_seed 10000 are training tasks" in proc.stderr and "Traceback" not in proc.stderr
+    assert not list(tmp_path.rglob("*.zip"))
+    bad_seed = [*TINY_PARAMS, "meta_test:dict(eval_seed=-1)"]
+    proc = train(tmp_path, "pearl", params=bad_seed, check=False)
+    assert proc.returncode == 2 and "eval_seed must be an integer >= 0" in proc.stderr
+
+
 def test_enjoy_missing_folder_and_other_env(trained: Path, tmp_path: Path) -> None:
     proc = run("enjoy.py", "--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "nowhere"), "--no-render", check=False)
     assert proc.returncode != 0 and "folder was not found" in proc.stderr

@@ -62,7 +62,8 @@ def held_out_tasks(
         if not callable(getattr(base, "sample_tasks", None)):
             raise ValueError(f"{type(base).__name__} has no sample_tasks(): a meta-test needs a task-family env")
         tasks = list(base.sample_tasks(n_tasks, eval_seed))  # type: ignore[attr-defined]
-    overlap = [task for task in tasks if task in list(train_tasks)]
+    train = list(train_tasks)
+    overlap = [task for task in tasks if task in train]
     if overlap:
         raise ValueError(
             f"{what + ': ' if what else ''}{len(overlap)} test task(s) drawn with eval_seed {eval_seed} are training tasks "

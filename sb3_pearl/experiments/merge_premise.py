@@ -45,7 +45,8 @@ MERGE_PREMISE = Experiment(
     eval_seed=TABLE1.eval_seed,
     reference="pearl",
     claims=(
-        # the adapted policy improves on the prior: returns rise with k (the encoder is used)
+        # reported beside the decision, not the decision itself: the adapted return at this setting against table1's
+        # PEARL (the decision reads the diagnostics' posterior AUC, the return across k and the k = 0 crash rate)
         Claim(HIGHWAY_MERGE.name, "pearl-fixed-entropy", "pearl", "return", -1, "higher", source=SOURCE),
     ),
     shared={"pearl": TABLE1.name},

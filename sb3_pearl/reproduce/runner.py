@@ -138,7 +138,8 @@ def held_out_record(
     :return: the record
     """
     start = time.time()
-    result = held_out_meta_test(model, env, settings, eval_seed, what, on_trajectory_start=on_trajectory_start)
+    # no per-step traces in result.json (the merge family's would add megabytes per run): trace_keys=()
+    result = held_out_meta_test(model, env, settings, eval_seed, what, trace_keys=(), on_trajectory_start=on_trajectory_start)
     return meta_test_record(result, wall_time_s=time.time() - start, env_kwargs=env_kwargs)
 
 

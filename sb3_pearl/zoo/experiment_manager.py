@@ -41,7 +41,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_pearl.common.adaptation import has_adaptation_api
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
-from sb3_pearl.evaluation.held_out import write_meta_test
+from sb3_pearl.evaluation.held_out import default_n_tasks, held_out_tasks, write_meta_test
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import PROJECT_FLAGS_HELP, parse_project_flags
@@ -159,6 +159,9 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             meta = parse_dict_string(meta, "meta_test")
         if not isinstance(meta, dict) or set(meta) - set(ZOO_META_TEST_DEFAULTS):
             raise UsageError(f"meta_test must be a dict with keys among {sorted(ZOO_META_TEST_DEFAULTS)}, got {meta!r}")
+        eval_seed = meta.get("eval_seed", 0)
+        if isinstance(eval_seed, bool) or not isinstance(eval_seed, int) or eval_seed < 0:
+            raise UsageError(f"meta_test eval_seed must be an integer >= 0 (the seed of the test tasks), got {eval_seed!r}")
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
         meta = hyperparams.pop("meta_test", None) or {}
@@ -168,13 +171,33 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         return super()._preprocess_hyperparams(hyperparams)
 
     def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
-        """rl_zoo3's set-up; a ValueError on the way (a value the env or the algorithm refuses) is a user error."""
+        """
+        rl_zoo3's set-up; a ValueError on the way (a value the env or the algorithm refuses) is a user error. For an
+        algorithm with the adaptation API, the held-out tasks of the meta-tests are drawn once here, so that a draw
+        that hits training tasks (``--seed`` equal to the eval seed, a family with few distinct tasks) is refused
+        before training, not after it.
+        """
         try:
-            return super().setup_experiment()
+            setup = super().setup_experiment()
+            if setup is not None and self.adaptive:
+                self._check_held_out_tasks(setup[0])
+            return setup
         except UsageError:
             raise
         except ValueError as error:
             raise UsageError(str(error)) from error
+
+    def _check_held_out_tasks(self, model: BaseAlgorithm) -> None:
+        settings = self.meta_test_kwargs
+        env = self.create_envs(1, eval_env=True)
+        try:
+            n_tasks = settings["n_tasks"] or default_n_tasks(model)
+            train_tasks = list(getattr(model, "train_tasks", None) or [])
+            held_out_tasks(env, n_tasks, settings["eval_seed"], train_tasks, f"{self.env_name.gym_id} (--seed {self.seed})")
+        except ValueError as error:
+            raise UsageError(f"{error} (meta_test eval_seed {settings['eval_seed']}, or another --seed)") from error
+        finally:
+            env.close()
 
     def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: VecEnv) -> BaseAlgorithm:
         check_model_env(self.trained_agent, self.env_name.gym_id)

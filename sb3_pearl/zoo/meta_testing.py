@@ -6,7 +6,8 @@
   per evaluation, k = 0..``meta_test.n_adapt``, logger keys ``meta_test/...``, ``best_model.zip``), and the callbacks
   add the cost of the run (:class:`~sb3_pearl.evaluation.progress.TrainingProgressCallback`, also ``-P``'s bar) and
   resumable ``--save-freq`` checkpoints;
-- Optuna trials are scored by the meta-test on validation tasks (drawn with ``eval_seed + 1``);
+- the ``--eval-freq`` evaluations (and ``best_model.zip``) and the Optuna trials use validation tasks (drawn with
+  ``eval_seed + 1``), never the final meta-test's tasks;
 - :meth:`final_meta_test` runs the meta-test of every trained model (:mod:`sb3_pearl.evaluation.held_out`) and writes
   ``meta_test.csv``, ``meta_test.json`` and ``adaptation.png`` into the run folder.
 
@@ -73,7 +74,8 @@ class MetaTestExperimentManager(ExperimentManager):
                     n_adapt=self.meta_test_kwargs["n_adapt"],
                     n_repeats=self.meta_test_kwargs["n_repeats"],
                     deterministic=self.meta_test_kwargs["deterministic"],
-                    eval_seed=self.meta_test_kwargs["eval_seed"],
+                    # validation tasks (eval_seed + 1): best_model.zip is never chosen on the final meta-test's tasks
+                    eval_seed=self.meta_test_kwargs["eval_seed"] + 1,
                     best_model_save_path=self.save_path,
                     log_path=self.save_path,
                     verbose=self.verbose,

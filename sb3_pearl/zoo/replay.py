@@ -68,7 +68,13 @@ def enjoy_parser() -> argparse.ArgumentParser:
         help="Save the adaptation curve (and, for the merge family, speed profiles and the b_min scatter); "
         "optional PNG path (default: <run folder>/enjoy_adaptation.png)",
     )
-    parser.add_argument("--seed", help="Random generator seed", type=non_negative_int, default=0)
+    parser.add_argument(
+        "--seed",
+        help="seed of the global RNGs while the model and env are built (the rollouts' resets and prior draws come from "
+        "--eval-seed: common random numbers)",
+        type=non_negative_int,
+        default=0,
+    )
     parser.add_argument("--device", help="PyTorch device to be use (ex: cpu, cuda...)", default="auto", type=str)
     parser.add_argument("--num-threads", help="Number of threads for PyTorch (-1 to use default)", default=-1, type=int)
     parser.add_argument("--verbose", help="Verbose mode (0: no output, 1: INFO)", default=1, type=int)
@@ -185,7 +191,10 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     model = ALGOS[args.algo].load(model_path, device=args.device)
     check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
     train_tasks = list(getattr(model, "train_tasks", None) or [])
-    tasks = held_out_tasks(env, args.n_tasks, args.eval_seed, train_tasks, model_path)
+    try:
+        tasks = held_out_tasks(env, args.n_tasks, args.eval_seed, train_tasks, model_path)
+    except ValueError as error:  # the draw hits training tasks (few distinct tasks in the family)
+        raise UsageError(f"{error} (--eval-seed)") from None
     source = "shifted ranges, " if shifted else ""
     print(
         f"{len(tasks)} test tasks ({source}eval seed {args.eval_seed}), trajectories k = 0 (prior) .. {args.n_adapt} "
