@@ -53,9 +53,17 @@ def enjoy_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--eval-seed",
         help="seed of the held-out tasks (drawn from the env, --env-kwargs for a shifted distribution) and of the common "
-        f"random numbers: train.py's final meta-test and the harness use the same draw (default {DEFAULT_EVAL_SEED})",
+        f"random numbers: train.py's final meta-test and the harness use the same draw (default {DEFAULT_EVAL_SEED}; "
+        "with --run, the run's own)",
         type=non_negative_int,
-        default=DEFAULT_EVAL_SEED,
+        default=None,
+    )
+    parser.add_argument(
+        "--run",
+        help="replay a reproduction-harness run folder (results/<experiment>/<family>/<variant>/seed<N>, with model.zip "
+        "and result.json) instead of a train.py run: its env kwargs and eval seed are used, nothing is trained",
+        type=str,
+        default=None,
     )
     parser.add_argument("--stochastic", action="store_true", default=False, help="Use stochastic actions")
     parser.add_argument("--no-render", action="store_true", default=False, help="Do not render the environment")
@@ -108,6 +116,32 @@ def _saved_env_kwargs(log_path: str, env_name: str, hyperparams: dict[str, Any])
     return env_kwargs
 
 
+def _harness_run(folder: str, algo: str, env_id: str) -> tuple[dict[str, Any], int]:
+    """
+    The env kwargs and eval seed of a reproduction-harness run folder, after checking that it holds a finished run of
+    ``algo`` on ``env_id`` (a :class:`~sb3_pearl.zoo.usage.UsageError` otherwise).
+
+    :param folder: the run folder (``results/<experiment>/<family>/<variant>/seed<N>``)
+    :param algo: ``--algo``
+    :param env_id: ``--env``
+    :return: the family's env kwargs and the experiment's eval seed
+    """
+    result_path, model_path = os.path.join(folder, "result.json"), os.path.join(folder, "model.zip")
+    if not (os.path.isfile(result_path) and os.path.isfile(model_path)):
+        raise UsageError(f"--run {folder}: not a finished harness run (expected model.zip and result.json in it)")
+    try:
+        with open(result_path) as file:
+            result = json.load(file)
+        family, variant = result["spec"]["family"], result["spec"]["variant"]
+    except (OSError, ValueError, KeyError) as error:
+        raise UsageError(f"--run {folder}: unreadable result.json ({error})") from None
+    if family["env_id"] != env_id:
+        raise UsageError(f"--run {folder} was trained on {family['env_id']}, not on {env_id}: pass --env {family['env_id']}")
+    if variant["algo"] != algo:
+        raise UsageError(f"--run {folder} is a {variant['algo']} model: pass --algo {variant['algo']}")
+    return dict(family.get("env_kwargs") or {}), int(result["eval_seed"])
+
+
 def format_task_table(result: MetaTestResult, task: int, repeat: int = 0) -> str:
     """The rows of one task and repeat: k, prior / posterior, return, cost, length (and the family extras)."""
     extras = [key for key in result.columns[len(ROW_COLUMNS) :]]
@@ -142,26 +176,36 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     env_name: EnvironmentName = args.env
     env_id = env_name.gym_id
     check_env_id(env_id)
-    try:
-        _, model_path, log_path = get_model_path(
-            args.exp_id, args.folder, args.algo, env_name, args.load_best, args.load_checkpoint, args.load_last_checkpoint
-        )
-    except (AssertionError, ValueError) as error:
-        raise UsageError(str(error)) from None
+    if args.run is not None:  # a harness run folder: model.zip + result.json
+        model_path, log_path = os.path.join(args.run, "model.zip"), args.run
+        run_env_kwargs, run_eval_seed = _harness_run(args.run, args.algo, env_id)
+    else:
+        try:
+            _, model_path, log_path = get_model_path(
+                args.exp_id, args.folder, args.algo, env_name, args.load_best, args.load_checkpoint, args.load_last_checkpoint
+            )
+        except (AssertionError, ValueError) as error:
+            raise UsageError(str(error)) from None
+    eval_seed = args.eval_seed if args.eval_seed is not None else (run_eval_seed if args.run else DEFAULT_EVAL_SEED)
     if args.num_threads > 0:
         th.set_num_threads(args.num_threads)
     set_random_seed(args.seed)
-    try:
-        check_model_env(model_path, env_id)  # a UsageError: the model was trained on another env
-    except UnsafeConfigError as error:  # its args.yml would run code
-        raise UsageError(str(error)) from None
+    if args.run is None:
+        try:
+            check_model_env(model_path, env_id)  # a UsageError: the model was trained on another env
+        except UnsafeConfigError as error:  # its args.yml would run code
+            raise UsageError(str(error)) from None
     print(f"Loading {model_path}")
 
-    try:  # the run folder's YAML, read without running code (sb3_pearl.zoo.safe_config)
-        hyperparams, maybe_stats_path = get_saved_hyperparams(os.path.join(log_path, env_name), test_mode=True)
-        env_kwargs = _saved_env_kwargs(log_path, env_name, hyperparams)
-    except UnsafeConfigError as error:
-        raise UsageError(str(error)) from None
+    if args.run is not None:
+        hyperparams: dict[str, Any] = {}  # the harness never normalises nor wraps
+        maybe_stats_path, env_kwargs = None, run_env_kwargs
+    else:
+        try:  # the run folder's YAML, read without running code (sb3_pearl.zoo.safe_config)
+            hyperparams, maybe_stats_path = get_saved_hyperparams(os.path.join(log_path, env_name), test_mode=True)
+            env_kwargs = _saved_env_kwargs(log_path, env_name, hyperparams)
+        except UnsafeConfigError as error:
+            raise UsageError(str(error)) from None
     shifted = bool(args.env_kwargs)
     if args.env_kwargs:
         env_kwargs.update(args.env_kwargs)
@@ -192,14 +236,11 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
     train_tasks = list(getattr(model, "train_tasks", None) or [])
     try:
-        tasks = held_out_tasks(env, args.n_tasks, args.eval_seed, train_tasks, model_path)
+        tasks = held_out_tasks(env, args.n_tasks, eval_seed, train_tasks, model_path)
     except ValueError as error:  # the draw hits training tasks (few distinct tasks in the family)
         raise UsageError(f"{error} (--eval-seed)") from None
     source = "shifted ranges, " if shifted else ""
-    print(
-        f"{len(tasks)} test tasks ({source}eval seed {args.eval_seed}), trajectories k = 0 (prior) .. {args.n_adapt} "
-        "(posterior)"
-    )
+    print(f"{len(tasks)} test tasks ({source}eval seed {eval_seed}), trajectories k = 0 (prior) .. {args.n_adapt} (posterior)")
 
     def name_video(task: int, repeat: int, k: int) -> None:
         if isinstance(env, RecordVideo):
@@ -213,7 +254,7 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
             env,
             tasks,
             settings,
-            args.eval_seed,
+            eval_seed,
             on_trajectory_start=name_video,
             progress_bar=True,
             description="Rollouts (Ctrl-C stops)",
