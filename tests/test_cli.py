@@ -198,7 +198,7 @@ def test_held_out_tasks_that_are_training_tasks_are_refused_before_training(tmp_
     assert proc.returncode == 2 and "eval_seed must be an integer >= 0" in proc.stderr
 
 
-def test_enjoy_replays_a_committed_harness_run(tmp_path: Path) -> None:
+def test_enjoy_replays_a_committed_harness_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """--run: a results/ folder replays without training, on the run's own test tasks and draws (its result.json rows)."""
     folder = ROOT / "results" / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
     result = json.loads((folder / "result.json").read_text())
@@ -208,10 +208,16 @@ def test_enjoy_replays_a_committed_harness_run(tmp_path: Path) -> None:
     for row in result["meta_test"]["rows"]:
         if row["task"] < 2 and row["repeat"] == 0 and row["k"] <= 2:
             assert f"{row['return']:>10.2f}" in out  # the committed number, from model.zip alone
-    proc = run("enjoy.py", "--algo", "pearl", *args, check=False)
-    assert proc.returncode == 2 and "is a pearlplus model: pass --algo pearlplus" in proc.stderr
-    proc = run("enjoy.py", "--algo", "pearlplus", *args[:2], "--run", str(tmp_path), "--no-render", check=False)
-    assert proc.returncode == 2 and "not a finished harness run" in proc.stderr
+    from sb3_pearl.zoo import enjoy  # the refusals in-process: they come before any model or env is built
+
+    for argv, message in (
+        (["--algo", "pearl", *args], "is a pearlplus model: pass --algo pearlplus"),
+        (["--algo", "pearlplus", "--env", "PointGoalMeta-v0", *args[2:]], "not on PointGoalMeta-v0: pass --env " + ENV_ID),
+        (["--algo", "pearlplus", *args[:2], "--run", str(tmp_path), "--no-render"], "not a finished harness run"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            enjoy(argv)
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_enjoy_missing_folder_and_other_env(trained: Path, tmp_path: Path) -> None:
