@@ -279,3 +279,19 @@ def test_callback_logs_meta_test(tiny_kwargs: dict[str, Any], tmp_path: Any) -> 
     assert (tmp_path / "best_model.zip").is_file()
     history = (tmp_path / "meta_test_history.csv").read_text().splitlines()
     assert history[0].startswith("timesteps,k,n,return_mean") and len(history) == 1 + 2 * 3
+
+
+def test_figures_read_a_harness_run_like_a_zoo_run(tmp_path: Any) -> None:
+    """One output format: a committed result.json's meta_test section loads as train.py's meta_test.json does."""
+    import json
+    from pathlib import Path
+
+    from sb3_pearl.evaluation.figures import load_run, plot_adaptation
+
+    folder = Path(__file__).resolve().parents[1] / "results" / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
+    label, result = load_run(folder)
+    committed = json.loads((folder / "result.json").read_text())["meta_test"]
+    assert label == "alpha-0.1" and result.rows == committed["rows"] and result.tasks == committed["tasks"]
+    assert [entry["k"] for entry in result.summary] == list(range(6))
+    plot_adaptation({label: result}, tmp_path / "a.png")
+    assert (tmp_path / "a.png").stat().st_size > 0

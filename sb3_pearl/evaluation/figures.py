@@ -15,6 +15,7 @@ family's ``ego_speed``).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -45,15 +46,24 @@ DEFAULT_OUTPUT = "plots.png"
 
 def load_run(path: str | os.PathLike[str]) -> tuple[str, MetaTestResult]:
     """
-    Read a run's meta-test.
+    Read a run's meta-test: train.py's ``meta_test.json`` or the reproduction harness's ``result.json`` (its
+    ``meta_test`` section, the same record: :mod:`sb3_pearl.evaluation.held_out`).
 
-    :param path: a run folder (with ``meta_test.json``) or the JSON file itself
-    :return: a label (the algorithm's zoo name, else the folder name) and the result
+    :param path: a run folder (with ``meta_test.json`` or ``result.json``) or the JSON file itself
+    :return: a label (the algorithm's zoo name or the harness variant, else the folder name) and the result
     """
     path = Path(path)
     json_path = path / "meta_test.json" if path.is_dir() else path
+    if path.is_dir() and not json_path.is_file() and (path / "result.json").is_file():
+        json_path = path / "result.json"
     if not json_path.is_file():
-        raise FileNotFoundError(f"{json_path} not found: pass a run folder written by train.py (or its meta_test.json)")
+        raise FileNotFoundError(
+            f"{json_path} not found: pass a run folder written by train.py or by the harness (or its meta_test.json)"
+        )
+    if json_path.name == "result.json":  # a harness run: the held-out meta-test record, labelled by its variant
+        with open(json_path) as file:
+            harness = json.load(file)
+        return str(harness["variant"]), MetaTestResult.from_dict(harness["meta_test"])
     result = MetaTestResult.from_json(json_path)
     label = str(result.config.get("algo") or json_path.parent.parent.name or json_path.parent.name)
     return label, result

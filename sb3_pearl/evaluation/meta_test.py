@@ -163,7 +163,11 @@ class MetaTestResult:
     def from_json(cls, path: str | os.PathLike[str]) -> MetaTestResult:
         """Read a result written by :meth:`to_json` (None back to nan in numbers)."""
         with open(path) as file:
-            data = json.load(file)
+            return cls.from_dict(json.load(file))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MetaTestResult:
+        """A result from :meth:`to_dict`'s form (``meta_test.json``, or a harness ``result.json``'s ``meta_test``)."""
 
         def fix(entry: dict[str, Any]) -> dict[str, Any]:
             return {key: (math.nan if value is None else value) for key, value in entry.items()}
