@@ -5,7 +5,10 @@
 - :mod:`sb3_pearl.zoo.registry`: :func:`register_algos` (the algorithms in ``rl_zoo3.ALGOS``
   and the PEARL / PEARL+ Optuna samplers), :func:`constructor_kwargs`;
 - :mod:`sb3_pearl.zoo.experiment_manager`: :class:`MetaExperimentManager` (rl_zoo3's
-  ``ExperimentManager`` with the project's hyperparameter files and the meta-test) and :func:`train`;
+  ``ExperimentManager`` with the project's hyperparameter files and the meta-test) and :func:`train`, put together
+  from :mod:`~sb3_pearl.zoo.meta_testing` (evaluation callback, Optuna score, final meta-test),
+  :mod:`~sb3_pearl.zoo.interruptions` (SIGTERM and exceptions save the model) and :mod:`~sb3_pearl.zoo.flags`
+  (``--budget``, ``--resume``); :mod:`~sb3_pearl.zoo.model_checks`: a saved model against its env;
 - :mod:`sb3_pearl.zoo.replay`: :func:`enjoy`, prior and posterior rollouts of a trained model;
 - :mod:`sb3_pearl.zoo.budget`: ``train.py --budget PRESET`` (a budget preset's entry as the hyperparameters);
 - :mod:`sb3_pearl.zoo.usage`: :class:`UsageError`, user errors printed as one line with exit status 2.
