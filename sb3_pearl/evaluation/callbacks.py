@@ -13,7 +13,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_pearl.common.adaptation import check_adaptive
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.envs.task_protocol import Task
-from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, default_n_tasks, held_out_tasks, run_meta_test
+from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.evaluation.statistics import SUMMARY_COLUMNS
 
@@ -77,9 +77,7 @@ class MetaTestCallback(BaseCallback):
     def _init_callback(self) -> None:
         check_adaptive(self.model)
         if self.tasks is None:
-            n_tasks = self.n_tasks or default_n_tasks(self.model)
-            train_tasks = list(getattr(self.model, "train_tasks", None) or [])
-            self.tasks = held_out_tasks(self.eval_env, n_tasks, self.eval_seed, train_tasks, "MetaTestCallback")
+            self.tasks = model_test_tasks(self.model, self.eval_env, self.n_tasks, self.eval_seed, "MetaTestCallback")
         for folder in (self.best_model_save_path, self.log_path):
             if folder is not None:
                 os.makedirs(folder, exist_ok=True)

@@ -72,6 +72,22 @@ def held_out_tasks(
     return tasks
 
 
+def model_test_tasks(model: Any, env: gym.Env | VecEnv, n_tasks: int | None, eval_seed: int, what: str = "") -> list[Task]:
+    """
+    :func:`held_out_tasks` for a trained model: ``n_tasks`` of them (None: :func:`default_n_tasks`), none of them one
+    of the model's training tasks.
+
+    :param model: the trained model (its ``train_tasks`` and ``test_tasks`` are read)
+    :param env: the evaluation env
+    :param n_tasks: number of tasks, or None
+    :param eval_seed: seed of the draw
+    :param what: the run, for the message
+    :return: task dicts
+    """
+    train_tasks = list(getattr(model, "train_tasks", None) or [])
+    return held_out_tasks(env, int(n_tasks or default_n_tasks(model)), eval_seed, train_tasks, what)
+
+
 def run_meta_test(
     model: Any,
     env: gym.Env | VecEnv,
@@ -123,7 +139,7 @@ def held_out_meta_test(
     model: Any, env: gym.Env | VecEnv, settings: Mapping[str, Any], eval_seed: int, what: str = "", **kwargs: Any
 ) -> MetaTestResult:
     """
-    :func:`run_meta_test` on :func:`held_out_tasks` (``settings["n_tasks"]`` of them, None: :func:`default_n_tasks`).
+    :func:`run_meta_test` on :func:`model_test_tasks` (``settings["n_tasks"]`` of them, None: :func:`default_n_tasks`).
 
     :param model: a trained model with the adaptation API
     :param env: the evaluation env (the training ranges, or shifted ones)
@@ -133,8 +149,7 @@ def held_out_meta_test(
     :param kwargs: the other arguments of :func:`run_meta_test`
     :return: the result
     """
-    n_tasks = settings.get("n_tasks") or default_n_tasks(model)
-    tasks = held_out_tasks(env, int(n_tasks), eval_seed, list(getattr(model, "train_tasks", None) or []), what)
+    tasks = model_test_tasks(model, env, settings.get("n_tasks"), eval_seed, what)
     return run_meta_test(model, env, tasks, settings, eval_seed, **kwargs)
 
 

@@ -323,7 +323,7 @@ def meta_test(
     :param model: any object with ``reset_adaptation``, ``observe``, ``adapt`` and ``predict``
         (:class:`~sb3_pearl.common.adaptation.AdaptiveModel`)
     :param env: a task-family env (gymnasium env, possibly wrapped, or a VecEnv of one env)
-    :param tasks: the test tasks (a trained model's: :func:`sb3_pearl.evaluation.held_out.held_out_tasks`)
+    :param tasks: the test tasks (a trained model's: :func:`sb3_pearl.evaluation.held_out.model_test_tasks`)
     :param n_adapt: last trajectory index K: trajectories k = 0..K are rolled out per task
     :param n_repeats: repeats of the whole sequence per task (the context is cleared for each)
     :param deterministic: deterministic actions (ignored for models with ``stochastic_adaptation = True``,

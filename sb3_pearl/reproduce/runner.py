@@ -27,7 +27,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_pearl  # noqa: F401  (registers the task families)
-from sb3_pearl.evaluation.held_out import held_out_meta_test, held_out_tasks, meta_test_record, run_meta_test
+from sb3_pearl.evaluation.held_out import held_out_meta_test, meta_test_record, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import json_value
 from sb3_pearl.experiments import get_experiment
 from sb3_pearl.experiments.budgets import check_constructor_kwargs, load_budget, model_kwargs
@@ -238,9 +238,7 @@ def run_one(
         curve_env = None
         if "curve" in budget:  # the learning curve on the held-out tasks (docs/reproduce.md, "Learning curves")
             curve_env = gym.make(family.env_id, **env_kwargs)
-            curve_tasks = held_out_tasks(
-                curve_env, budget["curve"]["n_tasks"], experiment.eval_seed, list(model.train_tasks), key.label()
-            )
+            curve_tasks = model_test_tasks(model, curve_env, budget["curve"]["n_tasks"], experiment.eval_seed, key.label())
             resume_at = int(state["num_timesteps"]) if state is not None else 0
             callbacks.append(
                 LearningCurve(
@@ -309,7 +307,7 @@ def run_one(
     competence = phase("competence", competence_check)
 
     def prior_measures() -> dict[str, Any]:
-        tasks = held_out_tasks(eval_env, settings["n_tasks"], experiment.eval_seed, train_tasks, key.label())
+        tasks = model_test_tasks(model, eval_env, settings["n_tasks"], experiment.eval_seed, key.label())
         try:
             return compute_prior_measures(
                 model, variant.algo, family, env_kwargs, settings, tasks, held_out["summary"][0], experiment.eval_seed, seed

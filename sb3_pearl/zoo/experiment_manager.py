@@ -41,7 +41,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_pearl.common.adaptation import has_adaptation_api
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
-from sb3_pearl.evaluation.held_out import default_n_tasks, held_out_tasks, write_meta_test
+from sb3_pearl.evaluation.held_out import model_test_tasks, write_meta_test
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import PROJECT_FLAGS_HELP, parse_project_flags
@@ -191,9 +191,9 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         settings = self.meta_test_kwargs
         env = self.create_envs(1, eval_env=True)
         try:
-            n_tasks = settings["n_tasks"] or default_n_tasks(model)
-            train_tasks = list(getattr(model, "train_tasks", None) or [])
-            held_out_tasks(env, n_tasks, settings["eval_seed"], train_tasks, f"{self.env_name.gym_id} (--seed {self.seed})")
+            model_test_tasks(
+                model, env, settings["n_tasks"], settings["eval_seed"], f"{self.env_name.gym_id} (--seed {self.seed})"
+            )
         except ValueError as error:
             raise UsageError(f"{error} (meta_test eval_seed {settings['eval_seed']}, or another --seed)") from error
         finally:

@@ -43,6 +43,11 @@ class MetaTestExperimentManager(ExperimentManager):
     budget: str | None = None  # --budget PRESET (the faster-option hint of the progress callback)
     meta_test_kwargs: dict[str, Any]  # the `meta_test` key over ZOO_META_TEST_DEFAULTS
 
+    @property
+    def validation_seed(self) -> int:
+        """The seed of the validation tasks (``eval_seed + 1``): the ``--eval-freq`` evaluations and Optuna trials."""
+        return int(self.meta_test_kwargs["eval_seed"]) + 1
+
     def create_callbacks(self) -> None:
         if not self.adaptive:
             super().create_callbacks()
@@ -74,8 +79,7 @@ class MetaTestExperimentManager(ExperimentManager):
                     n_adapt=self.meta_test_kwargs["n_adapt"],
                     n_repeats=self.meta_test_kwargs["n_repeats"],
                     deterministic=self.meta_test_kwargs["deterministic"],
-                    # validation tasks (eval_seed + 1): best_model.zip is never chosen on the final meta-test's tasks
-                    eval_seed=self.meta_test_kwargs["eval_seed"] + 1,
+                    eval_seed=self.validation_seed,  # best_model.zip is never chosen on the final meta-test's tasks
                     best_model_save_path=self.save_path,
                     log_path=self.save_path,
                     verbose=self.verbose,
@@ -87,8 +91,7 @@ class MetaTestExperimentManager(ExperimentManager):
             super().hyperparameters_optimization()
             return
         settings = {key: self.meta_test_kwargs[key] for key in ("n_adapt", "n_repeats")}
-        # Trials are scored on validation tasks (drawn with eval_seed + 1), never on the final meta-test's tasks.
-        settings["eval_seed"] = self.meta_test_kwargs["eval_seed"] + 1
+        settings["eval_seed"] = self.validation_seed  # trials are never scored on the final meta-test's tasks
         # rl_zoo3's objective() builds its TrialEvalCallback from the module's name and takes no callback class: the
         # name is replaced for this call only (restored on exit, also on errors).
         trial_callback = functools.partial(MetaTestTrialCallback, **settings)

@@ -24,7 +24,7 @@ from stable_baselines3.common.utils import set_random_seed
 
 from sb3_pearl.common.checks import non_negative_int, positive_int
 from sb3_pearl.common.runtime import has_display
-from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, held_out_tasks, run_meta_test
+from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
 from sb3_pearl.zoo.registry import register_algos
@@ -234,9 +234,8 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
 
     model = ALGOS[args.algo].load(model_path, device=args.device)
     check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
-    train_tasks = list(getattr(model, "train_tasks", None) or [])
     try:
-        tasks = held_out_tasks(env, args.n_tasks, eval_seed, train_tasks, model_path)
+        tasks = model_test_tasks(model, env, args.n_tasks, eval_seed, model_path)
     except ValueError as error:  # the draw hits training tasks (few distinct tasks in the family)
         raise UsageError(f"{error} (--eval-seed)") from None
     source = "shifted ranges, " if shifted else ""
