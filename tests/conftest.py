@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -77,6 +81,44 @@ def tiny_kwargs() -> dict[str, Any]:
     return {key: (dict(value) if isinstance(value, dict) else value) for key, value in TINY.items()}
 
 
+@dataclass
+class Completed:
+    """What an entry point called in-process gave: the fields of ``subprocess.CompletedProcess`` the tests read."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_in_process(main: Callable[[list[str]], Any], *args: str, check: bool = True) -> Completed:
+    """
+    Call a command-line entry point (``sb3_pearl.zoo.train``, ``enjoy``, ``sb3_pearl.reproduce.cli.main``, ...) in this
+    process with ``args`` as its command line, and return its exit status and output.
+
+    A new interpreter costs ~6 s before the first line of work (torch, rl_zoo3 and highway-env imports, and torch's
+    lazy ``torch._dynamo`` import at the first optimizer): the tests call the entry points in-process wherever the
+    separate process is not what they test (signals, a fresh install, concurrent workers and the harness's own child
+    processes keep theirs). The exit status is that of ``SystemExit`` (0 when the entry point returns, or its return
+    value when it returns an int).
+
+    :param main: the entry point, taking the command line as a list
+    :param args: the command line
+    :param check: raise if the exit status is not 0
+    :return: exit status, stdout and stderr
+    """
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            value = main(list(args))
+            code = value if isinstance(value, int) and not isinstance(value, bool) else 0
+        except SystemExit as exit_info:
+            code = exit_info.code if isinstance(exit_info.code, int) else (0 if exit_info.code is None else 1)
+    completed = Completed(code, out.getvalue(), err.getvalue())
+    if check and code != 0:
+        raise AssertionError(f"{' '.join(args)} exited {code}:\n{completed.stdout[-3000:]}\n{completed.stderr[-3000:]}")
+    return completed
+
+
 class CountSteps(BaseCallback):
     """Counts ``on_step`` calls (one per VecEnv step)."""
 
@@ -87,3 +129,24 @@ class CountSteps(BaseCallback):
     def _on_step(self) -> bool:
         self.calls += 1
         return True
+
+
+# The modules that take longest (Ray, harness runs, train.py processes) first: `make test` runs the suite on 2 workers,
+# one module at a time each (`--dist loadfile`), and a long module dealt last leaves one worker idle meanwhile.
+LONGEST_MODULES = (
+    "test_reproduce_ray.py",
+    "test_reliability.py",
+    "test_cli.py",
+    "test_reproduce.py",
+    "test_reproduce_resume.py",
+    "test_finetune.py",
+    "test_newcomer.py",
+    "test_tuning_storage.py",
+    "test_reproduce_ownership.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Deal the longest modules first (stable: the order inside a module, and of the other modules, is kept)."""
+    rank = {name: index for index, name in enumerate(LONGEST_MODULES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))

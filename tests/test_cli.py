@@ -1,22 +1,30 @@
-"""train.py / enjoy.py / plots end to end on a tiny budget (subprocesses), and their clear errors."""
+"""train.py / enjoy.py / plots end to end on a tiny budget, and their clear errors.
+
+``python train.py`` and ``python enjoy.py`` run as separate processes once each, as users run them (the ``trained``
+fixture, the harness-run replay); the other commands call the same entry points in-process
+(:func:`tests.conftest.run_in_process`: no interpreter start per command).
+"""
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
 
 import pytest
 import yaml
 
 from sb3_pearl import PEARL, PEARLPlus
+from sb3_pearl.evaluation.figures import main as plots_main
 from sb3_pearl.zoo import constructor_kwargs, register_algos
-from tests.conftest import TINY_ZOO_PARAMS
+from sb3_pearl.zoo import enjoy as enjoy_main
+from sb3_pearl.zoo import train as train_main
+from tests.conftest import TINY_ZOO_PARAMS, Completed, run_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV_ID = "SafePointGoalMeta-v0"
@@ -39,22 +47,33 @@ def run(script: str, *args: str, check: bool = True, timeout: float = 120) -> su
     return proc
 
 
-def train(folder: Path, algo: str = "pearlplus", *extra: str, params: list[str] = TINY_PARAMS, check: bool = True) -> Any:
-    return run(
-        "train.py",
+def train_args(folder: Path, algo: str, *extra: str, params: list[str] = TINY_PARAMS) -> list[str]:
+    return [
         *("--algo", algo, "--env", ENV_ID, "-f", str(folder), "--seed", "1", "--num-threads", "1"),
         *("-n", "200", "--eval-freq", "100", "--eval-episodes", "2"),
         *extra,
         "-params",
         *params,
-        check=check,
-    )
+    ]
+
+
+def train(
+    folder: Path, algo: str = "pearlplus", *extra: str, params: list[str] = TINY_PARAMS, check: bool = True
+) -> Completed:
+    """train.py's entry point in-process on the tiny budget."""
+    return run_in_process(train_main, *train_args(folder, algo, *extra, params=params), check=check)
+
+
+def enjoy(*args: str, check: bool = True) -> Completed:
+    """enjoy.py's entry point in-process."""
+    return run_in_process(enjoy_main, *args, check=check)
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``python train.py ...`` as a user runs it: a separate process."""
     folder = tmp_path_factory.mktemp("logs")
-    train(folder)
+    run("train.py", *train_args(folder, "pearlplus"))
     return folder
 
 
@@ -114,8 +133,7 @@ def test_params_reach_the_saved_model(trained: Path) -> None:
 
 def test_enjoy_prints_prior_and_posterior(trained: Path, tmp_path: Path) -> None:
     plot = tmp_path / "enjoy.png"
-    proc = run(
-        "enjoy.py",
+    proc = enjoy(
         *("--algo", "pearlplus", "--env", ENV_ID, "-f", str(trained), "--no-render"),
         *("--n-tasks", "2", "--n-adapt", "2", "--plot", str(plot)),
     )
@@ -124,16 +142,14 @@ def test_enjoy_prints_prior_and_posterior(trained: Path, tmp_path: Path) -> None
     assert out.count(" prior ") == 2 and out.count(" posterior ") == 4
     assert "Summary over tasks" in out and "viol. rate" in out
     assert plot.is_file() and (tmp_path / "enjoy_violations.png").is_file()
-    best = run(
-        "enjoy.py", "--algo", "pearlplus", "--env", ENV_ID, "-f", str(trained), "--no-render", "--load-best", "--n-adapt", "1"
-    )
+    best = enjoy("--algo", "pearlplus", "--env", ENV_ID, "-f", str(trained), "--no-render", "--load-best", "--n-adapt", "1")
     assert "best_model.zip" in best.stdout
 
 
 def test_plots_cli(trained: Path, tmp_path: Path) -> None:
     run_dir = trained / "pearlplus" / f"{ENV_ID}_1"
     out = tmp_path / "cmp.png"
-    proc = run("-m", "sb3_pearl.plots", str(run_dir), str(run_dir / "meta_test.json"), "-o", str(out), "--labels", "a", "b")
+    proc = run_in_process(plots_main, str(run_dir), str(run_dir / "meta_test.json"), "-o", str(out), "--labels", "a", "b")
     assert out.is_file() and (tmp_path / "cmp_violations.png").is_file()
     assert "Saved" in proc.stdout
 
@@ -155,15 +171,18 @@ def test_optimize_uses_the_meta_test(tmp_path: Path) -> None:
         *("-optimize", "--n-trials", "1", "--n-evaluations", "1", "--no-optim-plots", "--n-startup-trials", "1"),
         params=[*TINY_PARAMS, "num_train_steps_per_itr:2"],
     )
-    assert "Trial 0 finished with value" in proc.stderr + proc.stdout
-    assert "prior_coef" in proc.stdout  # the PEARL+ sampler's parameters
-    assert list((tmp_path / "pearlplus").glob("report_*.csv"))
+    (report,) = (tmp_path / "pearlplus").glob("report_*.csv")  # Optuna's log goes to logging, the report to a file
+    with open(report) as file:
+        (trial,) = list(csv.DictReader(file))
+    assert trial["state"] == "COMPLETE" and math.isfinite(float(trial["value"]))
+    assert "params_prior_coef" in trial  # the PEARL+ sampler's parameters
+    assert "prior_coef" in proc.stdout
 
 
 def test_unknown_algo_and_env(tmp_path: Path) -> None:
-    proc = run("train.py", "--algo", "nope", "--env", ENV_ID, "-f", str(tmp_path), check=False)
+    proc = run_in_process(train_main, "--algo", "nope", "--env", ENV_ID, "-f", str(tmp_path), check=False)
     assert proc.returncode != 0 and "invalid choice: 'nope'" in proc.stderr and "pearlplus" in proc.stderr
-    proc = run("train.py", "--algo", "pearl", "--env", "SafePointGoalMta-v0", "-f", str(tmp_path), check=False)
+    proc = run_in_process(train_main, "--algo", "pearl", "--env", "SafePointGoalMta-v0", "-f", str(tmp_path), check=False)
     assert proc.returncode != 0 and "not found in gym registry" in proc.stderr and ENV_ID in proc.stderr
 
 
@@ -172,8 +191,8 @@ def test_yaml_key_the_algorithm_does_not_take(tmp_path: Path) -> None:
         entry = yaml.safe_load(file)[ENV_ID]
     conf = tmp_path / "bad.yml"
     conf.write_text(yaml.safe_dump({ENV_ID: {**entry, "warp_factor": 9}}))
-    proc = run(
-        "train.py", "--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf), "-n", "10", check=False
+    proc = run_in_process(
+        train_main, "--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf), "-n", "10", check=False
     )
     assert proc.returncode != 0
     assert "PEARL does not take the hyperparameter(s) ['warp_factor']" in proc.stderr
@@ -185,8 +204,8 @@ def test_yaml_key_the_algorithm_does_not_take(tmp_path: Path) -> None:
 
 def test_held_out_tasks_that_are_training_tasks_are_refused_before_training(tmp_path: Path) -> None:
     """--seed equal to the meta-test's eval seed draws the test tasks among the training tasks: exit 2, nothing trained."""
-    proc = run(
-        "train.py",
+    proc = run_in_process(
+        train_main,
         *("--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "--seed", "10000", "-n", "200", "-params", *TINY_PARAMS),
         check=False,
     )
@@ -221,23 +240,13 @@ def test_enjoy_replays_a_committed_harness_run(tmp_path: Path, capsys: pytest.Ca
 
 
 def test_enjoy_missing_folder_and_other_env(trained: Path, tmp_path: Path) -> None:
-    proc = run("enjoy.py", "--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "nowhere"), "--no-render", check=False)
+    proc = enjoy("--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "nowhere"), "--no-render", check=False)
     assert proc.returncode != 0 and "folder was not found" in proc.stderr
     # a run folder renamed as if it held a PointGoalMeta-v0 model
     other = tmp_path / "logs" / "pearlplus" / "PointGoalMeta-v0_1"
     shutil.copytree(trained / "pearlplus" / f"{ENV_ID}_1", other)
     (other / f"{ENV_ID}.zip").rename(other / "PointGoalMeta-v0.zip")
-    proc = run(
-        "enjoy.py",
-        "--algo",
-        "pearlplus",
-        "--env",
-        "PointGoalMeta-v0",
-        "-f",
-        str(tmp_path / "logs"),
-        "--no-render",
-        check=False,
-    )
+    proc = enjoy("--algo", "pearlplus", "--env", "PointGoalMeta-v0", "-f", str(tmp_path / "logs"), "--no-render", check=False)
     assert proc.returncode != 0 and f"was trained on {ENV_ID}, not on PointGoalMeta-v0" in proc.stderr
 
 

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import ctypes.util
 import os
+import runpy
 import shutil
 import site
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import gymnasium as gym
 import pytest
@@ -61,10 +63,6 @@ def test_non_editable_install_runs_from_anywhere(tmp_path: Path) -> None:
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
 
-    proc = run([str(python), "-m", "sb3_pearl.train", "--help"], elsewhere)
-    assert proc.returncode == 0 and "--budget PRESET" in proc.stdout, proc.stderr
-    proc = run([str(python), "-m", "sb3_pearl.zoo"], elsewhere)
-    assert proc.returncode == 2 and "python -m sb3_pearl.train" in proc.stderr
     train_args = ["--algo", "pearlplus", "--env", ENV_ID, "--seed", "1", "-n", "300", "--eval-freq", "-1", "-P"]
     proc = run([str(venv / "bin" / "sb3-pearl-train"), *train_args, "-params", *TINY_PARAMS], elsewhere)
     output = proc.stdout
@@ -80,12 +78,30 @@ def test_non_editable_install_runs_from_anywhere(tmp_path: Path) -> None:
     assert (elsewhere / "logs" / "pearlplus" / f"{ENV_ID}_1" / "meta_test.json").is_file()
 
 
+@pytest.mark.parametrize(
+    "module, argv, status, stream, text",
+    [
+        ("sb3_pearl.train", ["--help"], 0, "out", "--budget PRESET"),
+        ("sb3_pearl.zoo", [], 2, "err", "python -m sb3_pearl.train"),
+    ],
+)
+def test_python_dash_m_entry_points(
+    module: str, argv: list[str], status: int, stream: str, text: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``python -m sb3_pearl.train --help`` lists the project's flags; ``python -m sb3_pearl.zoo`` says what to run."""
+    with mock.patch.object(sys, "argv", [module, *argv]), pytest.raises(SystemExit) as exit_info:
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
+    assert exit_info.value.code == status
+    assert text in getattr(capsys.readouterr(), stream)
+
+
 # ----------------------------------------------------------------------------------------------
 # 4-5. Headless rendering, and no noise at import or make
 # ----------------------------------------------------------------------------------------------
 def test_import_and_make_every_family_without_noise(tmp_path: Path) -> None:
     script = """
 import os
+import runpy
 import gymnasium as gym
 import sb3_pearl
 from sb3_pearl.envs import FAMILIES

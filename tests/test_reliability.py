@@ -31,8 +31,9 @@ from sb3_pearl.common.atomic import atomic_write, sb3_file_path
 from sb3_pearl.common.divergence import DivergenceError, NonFiniteEnvError
 from sb3_pearl.envs import FAMILIES
 from sb3_pearl.evaluation.meta_test import MetaTestResult
-from sb3_pearl.zoo import enjoy
+from sb3_pearl.zoo import enjoy, train
 from sb3_pearl.zoo.safe_config import UnsafeConfigError, load_run_yaml, parse_dict_string
+from tests.conftest import Completed, run_in_process
 
 ENV_ID = "SafePointGoalMeta-v0"
 
@@ -416,13 +417,17 @@ def test_sigterm_saves_the_model_and_says_where(tmp_path: Path) -> None:
     assert PEARLPlus.load(model_path).num_timesteps > 0
 
 
-def test_exception_during_training_saves_the_model_and_reraises(tmp_path: Path) -> None:
-    proc = start_train(tmp_path, "FailingSafePointGoalMeta-v0")
-    text, _ = proc.communicate(timeout=120)
-    model_path = tmp_path / "logs" / "pearlplus" / "FailingSafePointGoalMeta-v0_1" / "FailingSafePointGoalMeta-v0.zip"
-    assert proc.returncode == 1, text[-3000:]
+def test_exception_during_training_saves_the_model_and_reraises(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    env_id = "FailingSafePointGoalMeta-v0"
+    conf = tmp_path / "conf.yml"
+    conf.write_text(yaml.safe_dump({env_id: TINY_ZOO}))
+    argv = ["--algo", "pearlplus", "--env", env_id, "-f", str(tmp_path / "logs"), "-conf", str(conf), "--seed", "1"]
+    with pytest.raises(RuntimeError, match=r"the simulator crashed \(on purpose\)"):  # re-raised, so the exit status is 1
+        train([*argv, "--num-threads", "1", "--gym-packages", "tests.faulty_envs"])  # train.py's entry point, in-process
+    model_path = tmp_path / "logs" / "pearlplus" / f"{env_id}_1" / f"{env_id}.zip"
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
     assert f"Training stopped by RuntimeError at 200 timesteps: the model reached so far is saved to {model_path}" in text
-    assert "RuntimeError: the simulator crashed (on purpose)" in text  # re-raised with its traceback
     assert PEARLPlus.load(model_path).num_timesteps == 200
 
 
@@ -611,15 +616,12 @@ def test_resume_in_the_same_process_is_bit_identical(tiny_kwargs: dict[str, Any]
 
 def test_train_py_resume_of_a_checkpoint_is_bit_identical(tmp_path: Path) -> None:
     # Tiny zoo entry: iteration 0 = 4 x 30 = 120 steps, then 5 x (30 + 30) = 300: --save-freq 100 saves at 120.
-    def run(folder: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    def run(folder: Path, *extra: str) -> Completed:
         conf = tmp_path / "conf.yml"
         conf.write_text(yaml.safe_dump({ENV_ID: {**TINY_ZOO, "n_timesteps": 420, "meta_test": "dict(n_adapt=0)"}}))
-        command = [sys.executable, str(ROOT / "train.py"), "--algo", "pearlplus", "--env", ENV_ID, "-f", str(folder)]
+        command = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(folder)]
         command += ["-conf", str(conf), "--seed", "1", "--num-threads", "1", "--eval-episodes", "1", *extra]
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
-        proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
-        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-        return proc
+        return run_in_process(train, *command)  # train.py's entry point, in this process
 
     full = run(tmp_path / "full", "--save-freq", "100")
     run_dir = tmp_path / "full" / "pearlplus" / f"{ENV_ID}_1"
@@ -650,13 +652,10 @@ def test_train_py_resume_of_a_fine_tune_checkpoint_is_bit_identical(tmp_path: Pa
     conf.write_text(yaml.safe_dump({NOISY_ENV: entry}))
 
     def run(folder: Path, *extra: str) -> str:
-        command = [sys.executable, str(ROOT / "train.py"), "--algo", "finetune", "--env", NOISY_ENV, "-f", str(folder)]
+        command = ["--algo", "finetune", "--env", NOISY_ENV, "-f", str(folder)]
         command += ["-conf", str(conf), "--seed", "1", "--num-threads", "1", "--eval-episodes", "1", *extra]
         command += ["--gym-packages", "tests.faulty_envs"]
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
-        proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
-        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-        return proc.stdout
+        return run_in_process(train, *command).stdout  # train.py's entry point, in this process
 
     run(tmp_path / "full", "--save-freq", "100")
     run_dir = tmp_path / "full" / "finetune" / f"{NOISY_ENV}_1"

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import csv
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +22,7 @@ from sb3_pearl.experiments.budgets import (
     validate_entry,
 )
 from sb3_pearl.experiments.spec import Claim, Criterion, Experiment, PaperCell, Variant, claims_from_paper, resolve_k
+from sb3_pearl.reproduce.cli import main
 from sb3_pearl.reproduce.competence import criterion_value, evaluate_competence
 from sb3_pearl.reproduce.layout import RESULT_KEYS, parse_seeds
 from sb3_pearl.reproduce.report import BEGIN, END, splice
@@ -39,19 +37,15 @@ from sb3_pearl.reproduce.stats import (
     t_quantile,
     verdict,
 )
+from tests.conftest import Completed, run_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_ARGS = ["safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0", "alpha-0.1"]
 
 
-def reproduce(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    proc = subprocess.run(
-        [sys.executable, "-m", "sb3_pearl.reproduce", *args], capture_output=True, text=True, env=env, timeout=timeout
-    )
-    assert proc.returncode == 0, f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
-    return proc
+def reproduce(*args: str) -> Completed:
+    """``python -m sb3_pearl.reproduce ...``'s entry point in this process (its runs are still child processes)."""
+    return run_in_process(main, *args)
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,9 @@ from sb3_pearl.reproduce.cli import main
 from sb3_pearl.reproduce.layout import LOG_FILE, RunKey, parse_seeds, read_result, run_dir, write_json_atomic
 from sb3_pearl.reproduce.ownership import LOCKED_EXIT, RunLockedError, lock_holder, run_lock
 from sb3_pearl.reproduce.scheduler import plan_runs, run_experiment
+from sb3_pearl.zoo import train
 from sb3_pearl.zoo.usage import UsageError, check_yaml_n_timesteps
+from tests.conftest import run_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
@@ -153,14 +155,7 @@ def _umask() -> int:
 # -- flags -----------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("steps", ["0", "-5"])
 def test_train_py_refuses_a_zero_or_negative_budget(steps: str) -> None:
-    proc = subprocess.run(
-        [sys.executable, "train.py", "--algo", "pearl", "--env", "SafePointGoalMeta-v0", "-n", steps],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        env=ENV,
-        timeout=120,
-    )
+    proc = run_in_process(train, "--algo", "pearl", "--env", "SafePointGoalMeta-v0", "-n", steps, check=False)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "-n must be a positive number of env steps" in lines[0], proc.stderr
 

@@ -13,6 +13,9 @@ import optuna
 from optuna.storages.journal._storage import JournalOperation
 from optuna.trial import TrialState
 
+from sb3_pearl.zoo import train
+from tests.conftest import run_in_process
+
 ROOT = Path(__file__).resolve().parent.parent
 ENV_ID = "SafePointGoalMeta-v0"
 N_TRIALS = 2  # per worker
@@ -55,15 +58,11 @@ def test_two_workers_share_one_study_through_a_journal_file(tmp_path: Path) -> N
     assert all((tmp_path / f"w{seed}" / "pearlplus").is_dir() for seed in (1, 2))
 
     # a trial of the shared study, by index, trains with its parameters (trial 0 included: rl_zoo3 alone skips it)
-    replay = subprocess.run(
-        [sys.executable, str(ROOT / "train.py"), "--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "trial0")]
-        + ["-n", "300", "--num-threads", "1", "--eval-freq", "-1", "--storage", str(journal), "--study-name", study_name]
-        + ["--trial-id", "0"],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=240,
+    replay = run_in_process(  # train.py's entry point in this process
+        train,
+        *("--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "trial0"), "-n", "300", "--num-threads", "1"),
+        *("--eval-freq", "-1", "--storage", str(journal), "--study-name", study_name, "--trial-id", "0"),
+        check=False,
     )
     assert replay.returncode == 0, replay.stdout[-3000:] + replay.stderr[-3000:]
     assert "Loading from Optuna study" in replay.stdout
