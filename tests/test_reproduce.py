@@ -418,3 +418,28 @@ def test_competence_criteria() -> None:
     assert criterion_value(result, merged) == pytest.approx(0.5)
     outcome = evaluate_competence(result, (error, merged))
     assert [c["passed"] for c in outcome["criteria"]] == [True, False] and outcome["passed"] is False
+
+
+def test_curve_table_and_figure_say_where_a_run_became_competent(tmp_path: Path) -> None:
+    """The report's curve row: last point, first competent env step (all criteria passed), each criterion's last and best."""
+    from sb3_pearl.reproduce.curve import curve_table
+    from sb3_pearl.reproduce.figures import plot_curves
+
+    experiment = get_experiment("pearl-reference")
+
+    def point(steps: int, error: float, falls: float) -> dict[str, float]:
+        competent = float(error <= 0.3 and falls <= 0.1)
+        return dict(env_steps=steps, reference_return=steps / 1000, k0_return=-1.0, k0_violation=0.5, competent=competent,
+                    criterion_0=error, criterion_1=falls)  # fmt: skip
+
+    curves = {
+        0: [point(20_000, 1.0, 0.5), point(40_000, 0.25, 0.05), point(60_000, 0.35, 0.0)],  # competent at 40k, then not
+        1: [point(20_000, 0.9, 0.2), point(40_000, 0.5, 0.0), point(60_000, 0.4, 0.0)],
+    }
+    group = {"pearl": {seed: {"family": "walker2d-vel-long", "curve": rows} for seed, rows in curves.items()}}
+    header, _, first, second = curve_table(experiment, group)
+    assert "first competent at" in header
+    assert first == "| PEARL | 0 | 60000 | 60.0 | -1.0 | 50.0 | 40000 | 0.35 (0.25; bar <= 0.3); 0 (0; bar <= 0.1) |"
+    assert "| not competent | 0.4 (0.4; bar <= 0.3); 0 (0; bar <= 0.1) |" in second
+    assert plot_curves(experiment, group, tmp_path / "curves.png") and (tmp_path / "curves.png").is_file()
+    assert not plot_curves(experiment, {"pearl": {0: {"family": "walker2d-vel-long", "curve": None}}}, tmp_path / "no.png")

@@ -27,10 +27,11 @@ WALKER2D_VEL_LONG: Family = dataclasses.replace(
 
 PEARL_REFERENCE = Experiment(
     name="pearl-reference",
-    title="PEARL on HalfCheetah-Vel with the reference configuration",
+    title="Our PEARL against a published PEARL: learning curves to 500k env steps",
     description=(
         "PEARL on HalfCheetahVelMeta-v0 with the PEARL reference implementation's cheetah-vel configuration (reduced "
-        "for a CPU core at the cpu preset, docs/reproduce.md), 500k env steps, learning curve every 20k steps"
+        "for a CPU core at the cpu preset, docs/reproduce.md), and on Walker2D-vel with the cpu preset's networks "
+        "(walker2d-vel-long); 500k env steps, learning curve every 20k steps"
     ),
     families=(HALF_CHEETAH_VEL, WALKER2D_VEL_LONG),
     variants=(Variant("pearl", "PEARL", "pearl"),),

@@ -180,22 +180,38 @@ class LearningCurve(BaseCallback):
 
 def curve_table(experiment: Any, group: Any) -> list[str]:
     """
-    The last point of each run's learning curve (result.json ``curve``), for ``reproduce report``.
+    Each run's learning curve (result.json ``curve``) in one row, for ``reproduce report``: its last point, and where
+    it checks competence, the first env step at which the model was competent (every criterion passed) and the best
+    value of each criterion.
 
     :param experiment: the experiment (variant order and labels)
     :param group: variant -> seed -> result
     :return: markdown table lines
     """
     lines = [
-        "| variant | seed | env steps | return (reference protocol) | k = 0 return | k = 0 violation % |",
-        "|---|---|---|---|---|---|",
+        "| variant | seed | env steps | return (reference protocol) | k = 0 return | k = 0 violation % | first competent at "
+        "| criteria at the end (best) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for variant in [v for v in experiment.variants if v.name in group]:
         for seed, result in sorted(group[variant.name].items()):
-            if result.get("curve"):
-                last = result["curve"][-1]
-                lines.append(
-                    f"| {variant.label} | {seed} | {int(last['env_steps'])} | {last['reference_return']:.1f} | "
-                    f"{last['k0_return']:.1f} | {100 * last['k0_violation']:.1f} |"
-                )
+            rows = result.get("curve")
+            if not rows:
+                continue
+            last = rows[-1]
+            checked = [row for row in rows if math.isfinite(float(row.get("competent", math.nan)))]
+            first = next((int(row["env_steps"]) for row in checked if row["competent"]), None)
+            competent = "not checked" if not checked else (f"{first}" if first is not None else "not competent")
+            criteria = []
+            for index, criterion in enumerate(experiment.family(result["family"]).competence):
+                values = [float(row[f"criterion_{index}"]) for row in checked]
+                values = [value for value in values if math.isfinite(value)]
+                if values:
+                    best = min(values) if criterion.better == "lower" else max(values)
+                    bar = "<=" if criterion.better == "lower" else ">="
+                    criteria.append(f"{values[-1]:.3g} ({best:.3g}; bar {bar} {criterion.threshold:g})")
+            lines.append(
+                f"| {variant.label} | {seed} | {int(last['env_steps'])} | {last['reference_return']:.1f} | "
+                f"{last['k0_return']:.1f} | {100 * last['k0_violation']:.1f} | {competent} | {'; '.join(criteria) or 'n/a'} |"
+            )
     return lines

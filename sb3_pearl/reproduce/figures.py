@@ -13,7 +13,9 @@ tasks, env seeds and z0 draws, so a line is a paired comparison.
 
 from __future__ import annotations
 
+import math
 import os
+import textwrap
 from collections.abc import Mapping
 from typing import Any
 
@@ -133,6 +135,11 @@ def plot_seeds(
     return True
 
 
+def _wrap(text: str, width: int) -> str:
+    """``text`` broken into lines of at most ``width`` characters (axis labels)."""
+    return "\n".join(textwrap.wrap(text, width))
+
+
 def plot_curves(
     experiment: Experiment,
     group: Mapping[str, Mapping[int, dict[str, Any]]],
@@ -142,8 +149,9 @@ def plot_curves(
     """
     The learning curves on the test tasks (result.json ``curve``, ``sb3_pearl/reproduce/curve.py``) of one group.
 
-    Left: the reference's metric (mean return of the last evaluation trajectory) against env steps, mean over seeds
-    with the seeds' range shaded; right: the prior policy's (k = 0) violation rate.
+    First panel: the reference's metric (mean return of the last evaluation trajectory) against env steps, mean over
+    seeds with the seeds' range shaded; second: the prior policy's (k = 0) violation rate; then one panel per competence
+    criterion of the family (on training tasks, its bar dashed), when the curve checks competence.
 
     :param experiment: the experiment (variant order and labels)
     :param group: variant -> seed -> result
@@ -157,22 +165,40 @@ def plot_curves(
     curves = {name: runs for name, runs in curves.items() if runs}
     if not curves:
         return False
-    fig, (ax_return, ax_violation) = plt.subplots(1, 2, figsize=(10, 4))
+    family_name = next(r["family"] for runs in group.values() for r in runs.values() if r.get("curve"))
+    criteria = [
+        criterion
+        for index, criterion in enumerate(experiment.family(family_name).competence)
+        if any(math.isfinite(float(row.get(f"criterion_{index}", math.nan))) for runs in curves.values() for row in runs[0])
+    ]
+    # (curve column, scale, axis label, competence bar)
+    panels: list[tuple[str, float, str, float | None]] = [
+        ("reference_return", 1.0, "return of the last trajectory (reference protocol)", None)
+    ]
+    panels.append(("k0_violation", 100.0, "k = 0 violation rate [%]", None))
+    panels += [
+        (f"criterion_{index}", 1.0, _wrap(f"train: {criterion.description}", 45), criterion.threshold)
+        for index, criterion in enumerate(criteria)
+    ]
+    rows = math.ceil(len(panels) / 2)  # two panels a row
+    fig, axes = plt.subplots(rows, 2, figsize=(10, 4 * rows), squeeze=False)
+    for ax in axes.flat[len(panels) :]:
+        ax.set_visible(False)
     for index, (name, runs) in enumerate(curves.items()):
         steps = sorted(set.intersection(*(set(row["env_steps"] for row in rows) for rows in runs)))
-        for ax, key, scale in ((ax_return, "reference_return", 1.0), (ax_violation, "k0_violation", 100.0)):
+        label = f"{experiment.variant(name).label} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
+        for ax, (key, scale, _, _) in zip(axes.flat, panels):
             values = np.array([[{row["env_steps"]: row[key] for row in rows}[s] * scale for s in steps] for rows in runs])
-            label = f"{experiment.variant(name).label} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
             ax.plot(steps, values.mean(axis=0), color=f"C{index}", label=label)
             if len(runs) > 1:
                 ax.fill_between(steps, values.min(axis=0), values.max(axis=0), color=f"C{index}", alpha=0.2)
-    ax_return.set_xlabel("env steps")
-    ax_return.set_ylabel("return of the last trajectory (reference protocol)")
-    ax_violation.set_xlabel("env steps")
-    ax_violation.set_ylabel("k = 0 violation rate [%]")
-    ax_return.legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
+    for ax, (_, _, ylabel, bar) in zip(axes.flat, panels):
+        ax.set_xlabel("env steps")
+        ax.set_ylabel(ylabel, fontsize=9)
+        if bar is not None:
+            ax.axhline(bar, color="black", linestyle="--", linewidth=1, label=f"competence bar ({bar:g})")
+            ax.legend(fontsize=8)
+    axes.flat[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
