@@ -332,6 +332,9 @@ def test_experiments_are_declared() -> None:
         "prior-critic-walker",
         "pearl-reference",
         "merge-premise",
+        "merge-table1",
+        "merge-table2",
+        "merge-table3",
     }
     premise = get_experiment("merge-premise")  # only the entropy setting differs from table1's PEARL, which it shares
     fixed = premise.variant("pearl-fixed-entropy")
@@ -443,3 +446,35 @@ def test_curve_table_and_figure_say_where_a_run_became_competent(tmp_path: Path)
     assert "| not competent | 0.4 (0.4; bar <= 0.3); 0 (0; bar <= 0.1) |" in second
     assert plot_curves(experiment, group, tmp_path / "curves.png") and (tmp_path / "curves.png").is_file()
     assert not plot_curves(experiment, {"pearl": {0: {"family": "walker2d-vel-long", "curve": None}}}, tmp_path / "no.png")
+
+
+def test_the_merge_tables_at_the_reference_entropy_share_the_runs_of_one_model() -> None:
+    """merge-table1..3: the tables' merge variants plus fixed entropy 1 / reward scale 5; one run folder per model."""
+    from sb3_pearl.experiments.merge_fixed_entropy import at_reference_entropy, merge_at_reference_entropy
+    from sb3_pearl.experiments.table1 import TABLE1
+    from sb3_pearl.experiments.table3 import TABLE3
+    from sb3_pearl.reproduce.scheduler import plan_runs
+
+    table1, table3 = get_experiment("merge-table1"), get_experiment("merge-table3")
+    for experiment in (table1, get_experiment("merge-table2"), table3):
+        assert experiment.eval_seed == get_experiment("merge-premise").eval_seed
+        assert [family.name for family in experiment.families] == ["highway-merge"]
+        for variant in experiment.variants:
+            assert variant.overrides["ent_coef"] == 1.0 and variant.overrides["reward_scale"] == 5.0
+        assert all(cell.family == "highway-merge" for cell in experiment.paper)
+        names = {variant.name for variant in experiment.variants}
+        assert all(claim.variant in names and claim.reference in names for claim in experiment.claims)
+    # Table I's paper row moves with its variant: PEARL+'s 0.04% crash rate at k = 0
+    cell = table1.paper_value("highway-merge", "pearlplus-fixed-entropy", "violation", 0, 5)
+    assert cell is not None and cell.value == pytest.approx(0.0004)
+    # PEARL's runs are merge-premise's (seeds 2-3 too); alpha 0.1 of Table III is Table I's PEARL+
+    runs = plan_runs(table3, "cpu", [0], ["highway-merge"], ["pearlplus-fixed-entropy", "alpha-0-fixed-entropy"])
+    assert [(run.experiment, run.variant) for run in runs] == [
+        ("merge-table1", "pearlplus-fixed-entropy"),
+        ("merge-table3", "alpha-0-fixed-entropy"),
+    ]
+    runs = plan_runs(table1, "cpu", [3], ["highway-merge"], ["pearl-fixed-entropy"])
+    assert [(run.experiment, run.variant, run.seed) for run in runs] == [("merge-premise", "pearl-fixed-entropy", 3)]
+    assert at_reference_entropy(TABLE1.variant("pearl")).overrides == {"ent_coef": 1.0, "reward_scale": 5.0}
+    with pytest.raises(ValueError, match="alpha-1 is not the model of pearlplus-fixed-entropy"):
+        merge_at_reference_entropy(TABLE3, "x", ("alpha-1",), (0,), {}, same_as={"alpha-1": table1.variants[1]})

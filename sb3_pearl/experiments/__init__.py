@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from sb3_pearl.experiments.budgets import PRESETS, load_budget
 from sb3_pearl.experiments.families import FAMILIES, get_family
+from sb3_pearl.experiments.merge_fixed_entropy import MERGE_TABLE1, MERGE_TABLE2, MERGE_TABLE3
 from sb3_pearl.experiments.merge_premise import MERGE_PREMISE
 from sb3_pearl.experiments.pearl_reference import PEARL_REFERENCE
 from sb3_pearl.experiments.prior_critic import PRIOR_CRITIC, PRIOR_CRITIC_WALKER
@@ -35,6 +36,9 @@ EXPERIMENTS: dict[str, Experiment] = {
         PRIOR_CRITIC_WALKER,
         PEARL_REFERENCE,
         MERGE_PREMISE,
+        MERGE_TABLE1,
+        MERGE_TABLE2,
+        MERGE_TABLE3,
     )
 }
 for _experiment in EXPERIMENTS.values():
