@@ -74,9 +74,15 @@ def test_an_interrupted_run_resumes_to_the_same_metrics(
     assert main(["status", "safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants",
                  "alpha-0.1", "--results-dir", str(tmp_path)]) == 0  # fmt: skip
     out = capsys.readouterr().out
-    progress = "train 240/400 steps (60%)" if phase == "train" else "evaluate ("
+    progress = "train 240/400 steps (60%), training only" if phase == "train" else "evaluate ("
     assert "safe-point safe-point alpha-0.1 seed0" in out and "resumable" in out and progress in out, out
     assert "0 finished, 1 resumable, 0 missing" in out
+    if phase == "train":  # no finished sibling: the training's own rate still gives an estimate
+        assert "unknown" not in out
+        assert main(["status", "safe-point", "--budget", "smoke", "--seeds", "0,1", "--family", "safe-point", "--variants",
+                     "alpha-0.1", "--results-dir", str(tmp_path)]) == 0  # fmt: skip
+        missing = capsys.readouterr().out  # seed 1 at seed 0's rate: the 400 steps of training
+        assert "alpha-0.1 seed1" in missing and "- (training only)" in missing and "unknown" not in missing, missing
     resumed = run_one(*RUN, tmp_path, verbose=0)
     assert _metrics(resumed) == _metrics(uninterrupted)
     assert json.loads((folder / RESULT_FILE).read_text())["meta_test"]["summary"] == uninterrupted["meta_test"]["summary"]

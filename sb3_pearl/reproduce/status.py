@@ -2,7 +2,10 @@
 
 CPU time still needed, per run: a resumable run in training, its CPU seconds per env step so far times the steps
 left, plus the evaluation time of its finished siblings; a run in evaluation, that evaluation time; a missing run,
-the mean CPU time of the finished runs of the same family and algorithm in the plan (unknown when there is none).
+the mean CPU time of the finished runs of the same family and algorithm in the plan. Where no run of that family and
+algorithm has finished, the evaluation's cost is unknown and the estimate counts the training only (said in the
+progress column): a resumable run's own rate, a missing run's at the rate of a sibling in training (unknown when there
+is none either).
 Finished runs written before the CPU time was recorded count their wall time.
 """
 
@@ -76,6 +79,23 @@ def run_status(
         finite = [v for v in values if math.isfinite(v)]
         return sum(finite) / len(finite) if finite else math.nan
 
+    states = {key: RunCheckpoint(run_dir(results_dir, key)).read_state() for key in keys if key not in finished}
+
+    def n_timesteps(key: RunKey) -> int:
+        family, algo = experiment.family(key.family).budget_name, experiment.variant(key.variant).algo
+        return int(load_budget(budget_preset, family, algo)["n_timesteps"])
+
+    def training_rate(key: RunKey) -> float:
+        """CPU seconds per env step of the training of this family and algorithm's runs in training so far (nan: none)."""
+        algo = experiment.variant(key.variant).algo
+        rates = [
+            float(state["spent"]["cpu_s"]) / int(state["num_timesteps"])
+            for other, state in states.items()
+            if state is not None and state["phase"] == "train" and int(state["num_timesteps"]) > 0
+            if other.family == key.family and experiment.variant(other.variant).algo == algo
+        ]
+        return mean(rates)
+
     rows = []
     for key in keys:
         if key in finished:
@@ -84,18 +104,20 @@ def run_status(
             continue
         known = siblings(key)
         evaluation = mean([e for _, e in known])
-        state = RunCheckpoint(run_dir(results_dir, key)).read_state()
+        state = states[key]
         if state is None:
-            rows.append(RunStatus(key, "missing", "-", 0.0, mean([t for t, _ in known])))
+            # no finished sibling: the training alone at the rate of a sibling in training (a lower bound)
+            left = mean([t for t, _ in known]) if known else training_rate(key) * n_timesteps(key)
+            rows.append(RunStatus(key, "missing", "-" if known or not math.isfinite(left) else "- (training only)", 0.0, left))
             continue
-        n_total = load_budget(budget_preset, experiment.family(key.family).budget_name, experiment.variant(key.variant).algo)[
-            "n_timesteps"
-        ]
+        n_total = n_timesteps(key)
         done, cpu = int(state["num_timesteps"]), float(state["spent"]["cpu_s"])
         if state["phase"] == "train":
             per_step = cpu / done if done > 0 else math.nan
-            left = per_step * (n_total - done) + evaluation
+            left = per_step * (n_total - done) + (evaluation if math.isfinite(evaluation) else 0.0)
             progress = f"train {done}/{n_total} steps ({100 * done / n_total:.0f}%)"
+            if not math.isfinite(evaluation):
+                progress += ", training only"  # no finished sibling says what its evaluation costs
         else:
             left = evaluation
             progress = f"evaluate ({', '.join(p for p in state['phases'] if not p.endswith('_s')) or 'starting'})"
