@@ -17,8 +17,9 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 test: setup
-	# one module per worker at a time, dealt longest first (tests/conftest.py) instead of by test count
-	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
+	# one module per worker at a time, dealt longest first (tests/conftest.py) instead of by test count; a test that
+	# hangs (an in-process command, a child process) fails after 10 minutes instead of blocking its worker
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --timeout 600
 
 test-slow: setup
 	$(BIN)/python -m pytest -q -m slow

@@ -99,7 +99,9 @@ def run_in_process(main: Callable[[list[str]], Any], *args: str, check: bool = T
     lazy ``torch._dynamo`` import at the first optimizer): the tests call the entry points in-process wherever the
     separate process is not what they test (signals, a fresh install, concurrent workers and the harness's own child
     processes keep theirs). The exit status is that of ``SystemExit`` (0 when the entry point returns, or its return
-    value when it returns an int).
+    value when it returns an int; a message given to ``SystemExit`` goes to stderr with status 1, as Python does).
+    Unlike a separate process, other exceptions propagate to the caller (``pytest.raises`` them), and only what is
+    written to ``sys.stdout`` / ``sys.stderr`` is captured: logging handlers made before the call (Optuna's) are not.
 
     :param main: the entry point, taking the command line as a list
     :param args: the command line
@@ -113,6 +115,8 @@ def run_in_process(main: Callable[[list[str]], Any], *args: str, check: bool = T
             code = value if isinstance(value, int) and not isinstance(value, bool) else 0
         except SystemExit as exit_info:
             code = exit_info.code if isinstance(exit_info.code, int) else (0 if exit_info.code is None else 1)
+            if exit_info.code is not None and not isinstance(exit_info.code, int):
+                print(exit_info.code, file=err)
     completed = Completed(code, out.getvalue(), err.getvalue())
     if check and code != 0:
         raise AssertionError(f"{' '.join(args)} exited {code}:\n{completed.stdout[-3000:]}\n{completed.stderr[-3000:]}")

@@ -101,7 +101,6 @@ def test_python_dash_m_entry_points(
 def test_import_and_make_every_family_without_noise(tmp_path: Path) -> None:
     script = """
 import os
-import runpy
 import gymnasium as gym
 import sb3_pearl
 from sb3_pearl.envs import FAMILIES

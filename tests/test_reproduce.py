@@ -478,3 +478,30 @@ def test_the_merge_tables_at_the_reference_entropy_share_the_runs_of_one_model()
     assert at_reference_entropy(TABLE1.variant("pearl")).overrides == {"ent_coef": 1.0, "reward_scale": 5.0}
     with pytest.raises(ValueError, match="alpha-1 is not the model of pearlplus-fixed-entropy"):
         merge_at_reference_entropy(TABLE3, "x", ("alpha-1",), (0,), {}, same_as={"alpha-1": table1.variants[1]})
+
+
+def test_a_group_holds_the_seeds_its_experiment_declares(tmp_path: Path) -> None:
+    """A shared variant's owner may hold more seeds (run for another experiment): each report shows its own seeds."""
+    import json
+
+    from sb3_pearl.reproduce.cells import load_groups
+    from sb3_pearl.reproduce.layout import RunKey, run_dir
+
+    def write(experiment: str, variant: str, seed: int) -> None:
+        folder = run_dir(tmp_path, RunKey(experiment, "highway-merge", variant, seed))
+        folder.mkdir(parents=True)
+        result = {key: None for key in RESULT_KEYS}
+        result.update(experiment=experiment, family="highway-merge", variant=variant, seed=seed, budget_preset="cpu")
+        result["meta_test"] = {"summary": [{"k": 0, "n": 1, "return_mean": -1.0, "violation_rate": 0.0}]}
+        (folder / "result.json").write_text(json.dumps(result))
+
+    for seed in (0, 1, 2, 3):  # merge-premise declares seeds 0-1; merge-table1 runs 2-3 of its PEARL into its folder
+        write("merge-premise", "pearl-fixed-entropy", seed)
+    write("merge-table1", "pearlplus-fixed-entropy", 0)
+    write("merge-table3", "alpha-0-fixed-entropy", 5)  # a seed merge-table3 does not declare
+    groups = load_groups(tmp_path)
+    assert sorted(groups[("merge-premise", "cpu", "highway-merge")]["pearl-fixed-entropy"]) == [0, 1]
+    assert sorted(groups[("merge-table1", "cpu", "highway-merge")]["pearl-fixed-entropy"]) == [0, 1, 2, 3]
+    # merge-table3's alpha-0 run (seed 5) is left out; the PEARL+ run it shares with merge-table1 stays
+    table3 = groups[("merge-table3", "cpu", "highway-merge")]
+    assert list(table3) == ["pearlplus-fixed-entropy"] and list(table3["pearlplus-fixed-entropy"]) == [0]

@@ -11,9 +11,9 @@ The three experiments below are those tables' merge variants with ``ent_coef=1.0
 their overrides (variant names get the suffix ``-fixed-entropy``), with the tables' own paper cells and claims renamed
 to match. Nothing else changes: same ``cpu`` preset, networks and budget. All three use Table I's eval seed (10001),
 the one of ``merge-premise``, so that one run serves every table that declares the same model (common random
-numbers): PEARL's runs are ``merge-premise``'s (seeds 0-1 done there, 2-3 run into its folder), and PEARL+ at alpha
-0.1 is Table I's row, Table III's alpha 0.1 column and the reference of both. The original tables keep their own
-eval seeds and their runs at the ``cpu`` setting.
+numbers): PEARL's runs are ``merge-premise``'s (seeds 0-1 done there, 2-3 run into its folder; each experiment's
+report shows the seeds it declares), and PEARL+ at alpha 0.1 is both Table I's PEARL+ row and Table III's alpha 0.1
+column. The original tables keep their own eval seeds and their runs at the ``cpu`` setting.
 
 A PEARL+ form recommended by the prior-critic selection (issue 18), once there is one, joins ``merge-table1`` as a
 variant; none is recommended yet.

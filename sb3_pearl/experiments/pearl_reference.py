@@ -27,7 +27,7 @@ WALKER2D_VEL_LONG: Family = dataclasses.replace(
 
 PEARL_REFERENCE = Experiment(
     name="pearl-reference",
-    title="Our PEARL against a published PEARL: learning curves to 500k env steps",
+    title="PEARL's learning curves to 500k env steps: HalfCheetah-Vel (the reference configuration), Walker2D-vel",
     description=(
         "PEARL on HalfCheetahVelMeta-v0 with the PEARL reference implementation's cheetah-vel configuration (reduced "
         "for a CPU core at the cpu preset, docs/reproduce.md), and on Walker2D-vel with the cpu preset's networks "

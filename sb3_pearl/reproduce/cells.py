@@ -36,7 +36,8 @@ class CellStats:
 
 def load_groups(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str], Group]:
     """
-    Every complete run under ``results_dir``, grouped.
+    Every complete run under ``results_dir``, grouped; an experiment's group holds its declared seeds only (a shared
+    variant's owner may hold more seeds, run for another experiment that declares them).
 
     :param results_dir: root of the results layout
     :return: (experiment, budget preset, family) -> variant -> seed -> result
@@ -52,7 +53,16 @@ def load_groups(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str
             for variant, owner in other.shared.items():
                 if owner == experiment_name and variant in group and (other.name, budget, family) in groups:
                     groups[(other.name, budget, family)][variant] = group[variant]
-    return {key: {variant: dict(seeds) for variant, seeds in group.items()} for key, group in sorted(groups.items())}
+
+    def declared(experiment_name: str, seeds: dict[int, dict[str, Any]]) -> dict[int, dict[str, Any]]:
+        experiment = EXPERIMENTS.get(experiment_name)
+        return dict(seeds) if experiment is None else {seed: r for seed, r in seeds.items() if seed in experiment.seeds}
+
+    kept = {
+        key: {variant: runs for variant, seeds in group.items() if (runs := declared(key[0], seeds))}
+        for key, group in sorted(groups.items())
+    }
+    return {key: group for key, group in kept.items() if group}
 
 
 def summary_at(result: dict[str, Any], k: int, section: str = "meta_test") -> dict[str, Any] | None:

@@ -178,6 +178,12 @@ class LearningCurve(BaseCallback):
         self._point()
 
 
+def curve_value(row: dict[str, Any], key: str) -> float:
+    """A curve row's value as a float: nan where the row has none (result.json stores nan as null)."""
+    value = row.get(key)
+    return math.nan if value is None else float(value)
+
+
 def curve_table(experiment: Any, group: Any) -> list[str]:
     """
     Each run's learning curve (result.json ``curve``) in one row, for ``reproduce report``: its last point, and where
@@ -199,19 +205,20 @@ def curve_table(experiment: Any, group: Any) -> list[str]:
             if not rows:
                 continue
             last = rows[-1]
-            checked = [row for row in rows if math.isfinite(float(row.get("competent", math.nan)))]
-            first = next((int(row["env_steps"]) for row in checked if row["competent"]), None)
+            checked = [row for row in rows if math.isfinite(curve_value(row, "competent"))]
+            first = next((int(row["env_steps"]) for row in checked if curve_value(row, "competent") == 1.0), None)
             competent = "not checked" if not checked else (f"{first}" if first is not None else "not competent")
             criteria = []
             for index, criterion in enumerate(experiment.family(result["family"]).competence):
-                values = [float(row[f"criterion_{index}"]) for row in checked]
+                values = [curve_value(row, f"criterion_{index}") for row in checked]
                 values = [value for value in values if math.isfinite(value)]
                 if values:
                     best = min(values) if criterion.better == "lower" else max(values)
                     bar = "<=" if criterion.better == "lower" else ">="
                     criteria.append(f"{values[-1]:.3g} ({best:.3g}; bar {bar} {criterion.threshold:g})")
             lines.append(
-                f"| {variant.label} | {seed} | {int(last['env_steps'])} | {last['reference_return']:.1f} | "
-                f"{last['k0_return']:.1f} | {100 * last['k0_violation']:.1f} | {competent} | {'; '.join(criteria) or 'n/a'} |"
+                f"| {variant.label} | {seed} | {int(last['env_steps'])} | {curve_value(last, 'reference_return'):.1f} | "
+                f"{curve_value(last, 'k0_return'):.1f} | {100 * curve_value(last, 'k0_violation'):.1f} | {competent} | "
+                f"{'; '.join(criteria) or 'n/a'} |"
             )
     return lines

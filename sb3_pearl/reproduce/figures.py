@@ -28,6 +28,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from sb3_pearl.experiments.spec import Experiment  # noqa: E402
 from sb3_pearl.reproduce.cells import cell_stats, last_k, seed_values  # noqa: E402
+from sb3_pearl.reproduce.curve import curve_value  # noqa: E402
 
 
 def _error_bars(mean: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
@@ -166,32 +167,34 @@ def plot_curves(
     if not curves:
         return False
     family_name = next(r["family"] for runs in group.values() for r in runs.values() if r.get("curve"))
-    criteria = [
-        criterion
-        for index, criterion in enumerate(experiment.family(family_name).competence)
-        if any(math.isfinite(float(row.get(f"criterion_{index}", math.nan))) for runs in curves.values() for row in runs[0])
+    competence = experiment.family(family_name).competence
+    checked = [  # (index in the family's criteria, criterion) of the criteria the curves hold values of
+        (index, criterion)
+        for index, criterion in enumerate(competence)
+        if any(math.isfinite(curve_value(row, f"criterion_{index}")) for runs in curves.values() for row in runs[0])
     ]
     # (curve column, scale, axis label, competence bar)
     panels: list[tuple[str, float, str, float | None]] = [
-        ("reference_return", 1.0, "return of the last trajectory (reference protocol)", None)
+        ("reference_return", 1.0, "return of the last trajectory (reference protocol)", None),
+        ("k0_violation", 100.0, "k = 0 violation rate [%]", None),
     ]
-    panels.append(("k0_violation", 100.0, "k = 0 violation rate [%]", None))
     panels += [
         (f"criterion_{index}", 1.0, _wrap(f"train: {criterion.description}", 45), criterion.threshold)
-        for index, criterion in enumerate(criteria)
+        for index, criterion in checked
     ]
-    rows = math.ceil(len(panels) / 2)  # two panels a row
-    fig, axes = plt.subplots(rows, 2, figsize=(10, 4 * rows), squeeze=False)
+    n_rows = math.ceil(len(panels) / 2)  # two panels a row
+    fig, axes = plt.subplots(n_rows, 2, figsize=(10, 4 * n_rows), squeeze=False)
     for ax in axes.flat[len(panels) :]:
         ax.set_visible(False)
-    for index, (name, runs) in enumerate(curves.items()):
+    for color, (name, runs) in enumerate(curves.items()):
         steps = sorted(set.intersection(*(set(row["env_steps"] for row in rows) for rows in runs)))
         label = f"{experiment.variant(name).label} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
         for ax, (key, scale, _, _) in zip(axes.flat, panels):
-            values = np.array([[{row["env_steps"]: row[key] for row in rows}[s] * scale for s in steps] for rows in runs])
-            ax.plot(steps, values.mean(axis=0), color=f"C{index}", label=label)
+            by_step = [{row["env_steps"]: curve_value(row, key) * scale for row in rows} for rows in runs]
+            values = np.array([[points[step] for step in steps] for points in by_step])
+            ax.plot(steps, values.mean(axis=0), color=f"C{color}", label=label)
             if len(runs) > 1:
-                ax.fill_between(steps, values.min(axis=0), values.max(axis=0), color=f"C{index}", alpha=0.2)
+                ax.fill_between(steps, values.min(axis=0), values.max(axis=0), color=f"C{color}", alpha=0.2)
     for ax, (_, _, ylabel, bar) in zip(axes.flat, panels):
         ax.set_xlabel("env steps")
         ax.set_ylabel(ylabel, fontsize=9)
@@ -199,6 +202,8 @@ def plot_curves(
             ax.axhline(bar, color="black", linestyle="--", linewidth=1, label=f"competence bar ({bar:g})")
             ax.legend(fontsize=8)
     axes.flat[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

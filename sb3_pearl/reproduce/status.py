@@ -139,9 +139,12 @@ def format_status(rows: Sequence[RunStatus]) -> str:
     left = [r.cpu_left_s for r in rows if r.status != "finished"]
     unknown = sum(not math.isfinite(v) for v in left)
     total = sum(v for v in left if math.isfinite(v))
+    partial = sum("training only" in r.progress for r in rows)
     lines.append(
         f"{counts['finished']} finished, {counts['resumable']} resumable, {counts['missing']} missing; "
-        f"CPU time left {hours(total)} (one core)" + (f", plus {unknown} run(s) of unknown cost" if unknown else "")
+        f"CPU time left {'at least ' if partial else ''}{hours(total)} (one core)"
+        + (f", plus {unknown} run(s) of unknown cost" if unknown else "")
+        + (f"; {partial} estimate(s) count the training only" if partial else "")
     )
     if counts["resumable"] or counts["missing"]:
         lines.append("The same `reproduce run` command completes them (resumable runs continue from their checkpoints).")
