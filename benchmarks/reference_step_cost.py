@@ -7,7 +7,7 @@ gradient steps (2000 per 5000-step iteration after the 200k-step initial pool; `
 collection plus the learning curve's evaluations (30 tasks x 3 trajectories x 200 steps every 20k steps). Ratios to the
 full configuration are measured in the same run; the machine's load average is printed with them.
 
-    python benchmarks/reference_step_cost.py --updates 30
+    python -m benchmarks.reference_step_cost --updates 30   # from the repository root (it imports benchmarks.*)
 """
 
 from __future__ import annotations
