@@ -64,7 +64,7 @@ def merge_at_reference_entropy(
     same_as = dict(same_as or {})
     for base_name, variant in same_as.items():
         mine = at_reference_entropy(base.variant(base_name))
-        if (mine.algo, dict(mine.overrides)) != (variant.algo, dict(variant.overrides)):
+        if not mine.same_model(variant):
             raise ValueError(f"{name}: {base_name} is not the model of {variant.name}: {mine} against {variant}")
     variants = tuple(same_as.get(variant) or at_reference_entropy(base.variant(variant)) for variant in variant_names)
     rename = {base_name: variant.name for base_name, variant in zip(variant_names, variants)}

@@ -162,6 +162,10 @@ class Variant:
         if self.algo not in ALGOS:
             raise ValueError(f"variant {self.name}: unknown algo {self.algo!r}, expected one of {ALGOS}")
 
+    def same_model(self, other: Variant) -> bool:
+        """Whether ``other`` trains the same model (algorithm and overrides; names and labels aside)."""
+        return (self.algo, dict(self.overrides)) == (other.algo, dict(other.overrides))
+
 
 @dataclass(frozen=True)
 class PaperCell:
@@ -339,7 +343,7 @@ def check_shared(experiment: Experiment, experiments: Mapping[str, Experiment]) 
             raise ValueError(f"{where} names the owner {owner_name!r}, which is not another experiment")
         mine = experiment.variant(name)
         theirs = owner.variant(name)
-        if (mine.algo, dict(mine.overrides)) != (theirs.algo, dict(theirs.overrides)):
+        if not mine.same_model(theirs):
             raise ValueError(f"{where} is declared differently in {owner_name}: {theirs} against {mine}")
         if owner.eval_seed != experiment.eval_seed:
             raise ValueError(f"{where}: {owner_name} has eval seed {owner.eval_seed}, not {experiment.eval_seed}")

@@ -31,6 +31,7 @@ class RunStatus(NamedTuple):
     progress: str
     cpu_spent_s: float
     cpu_left_s: float  # nan: unknown
+    training_only: bool = False  # cpu_left_s counts the training only (no finished sibling gives the evaluation's cost)
 
 
 def _finished_cpu(result: dict[str, Any]) -> tuple[float, float]:
@@ -108,20 +109,23 @@ def run_status(
         if state is None:
             # no finished sibling: the training alone at the rate of a sibling in training (a lower bound)
             left = mean([t for t, _ in known]) if known else training_rate(key) * n_timesteps(key)
-            rows.append(RunStatus(key, "missing", "-" if known or not math.isfinite(left) else "- (training only)", 0.0, left))
+            partial = not known and math.isfinite(left)
+            rows.append(RunStatus(key, "missing", "- (training only)" if partial else "-", 0.0, left, partial))
             continue
         n_total = n_timesteps(key)
         done, cpu = int(state["num_timesteps"]), float(state["spent"]["cpu_s"])
+        partial = False
         if state["phase"] == "train":
             per_step = cpu / done if done > 0 else math.nan
             left = per_step * (n_total - done) + (evaluation if math.isfinite(evaluation) else 0.0)
             progress = f"train {done}/{n_total} steps ({100 * done / n_total:.0f}%)"
-            if not math.isfinite(evaluation):
-                progress += ", training only"  # no finished sibling says what its evaluation costs
+            partial = not math.isfinite(evaluation)  # no finished sibling says what its evaluation costs
+            if partial:
+                progress += ", training only"
         else:
             left = evaluation
             progress = f"evaluate ({', '.join(p for p in state['phases'] if not p.endswith('_s')) or 'starting'})"
-        rows.append(RunStatus(key, "resumable", progress, cpu, left))
+        rows.append(RunStatus(key, "resumable", progress, cpu, left, partial))
     return rows
 
 
@@ -139,7 +143,7 @@ def format_status(rows: Sequence[RunStatus]) -> str:
     left = [r.cpu_left_s for r in rows if r.status != "finished"]
     unknown = sum(not math.isfinite(v) for v in left)
     total = sum(v for v in left if math.isfinite(v))
-    partial = sum("training only" in r.progress for r in rows)
+    partial = sum(r.training_only for r in rows)
     lines.append(
         f"{counts['finished']} finished, {counts['resumable']} resumable, {counts['missing']} missing; "
         f"CPU time left {'at least ' if partial else ''}{hours(total)} (one core)"
