@@ -74,23 +74,39 @@ class TaskReplayBuffer:
 
     _ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "prior_z")
 
+    def _rows_in_use(self, used: int) -> np.ndarray:
+        """Mask of shape ``(n_tasks, used)``: True on the rows a task holds (``row < size[task]``)."""
+        return np.arange(used)[None, :] < self.size[:, None]
+
     def __getstate__(self) -> dict:
-        """Pickle only the rows in use (``save_replay_buffer``): the capacity is not written to disk."""
+        """
+        Pickle only the rows in use (``save_replay_buffer``), task after task: neither the capacity nor the rows a
+        task has not filled are written, so a buffer of unequal task sizes (PEARL samples 5 tasks an iteration) costs
+        what it holds. Rows past a task's size are never sampled, so the loaded buffer trains the same weights.
+        """
         state = self.__dict__.copy()
         used = int(self.size.max()) if self.size.size else 0
+        held = self._rows_in_use(used)
         for name in self._ARRAYS:
-            state[name] = getattr(self, name)[:, :used].copy()
+            state[name] = getattr(self, name)[:, :used][held]  # (size.sum(), dim): task 0's rows, then task 1's, ...
+        state["layout"] = "rows-in-use"
         return state
 
     def __setstate__(self, state: dict) -> None:
+        layout = state.pop("layout", "padded")  # "padded": earlier pickles, arrays (n_tasks, largest size, dim)
         if "prior_z" not in state:  # a buffer saved before the flag existed: its z sources are unknown (none marked)
             state["prior_z"] = np.zeros_like(state["rewards"])
+        self.__dict__.update({k: v for k, v in state.items() if k not in self._ARRAYS})
+        used = int(self.size.max()) if self.size.size else 0
+        held = self._rows_in_use(used)
         for name in self._ARRAYS:
             stored = state[name]
-            full = np.zeros((stored.shape[0], state["capacity"], *stored.shape[2:]), dtype=stored.dtype)
-            full[:, : stored.shape[1]] = stored
-            state[name] = full
-        self.__dict__.update(state)
+            full = np.zeros((self.n_tasks, self.capacity, *stored.shape[1 if layout == "rows-in-use" else 2 :]), stored.dtype)
+            if layout == "rows-in-use":
+                full[:, :used][held] = stored  # the view writes through to ``full``
+            else:
+                full[:, : stored.shape[1]] = stored
+            setattr(self, name, full)
 
     def clear(self, task: int) -> None:
         """Forget every transition of ``task``."""

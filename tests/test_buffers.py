@@ -1,0 +1,72 @@
+"""The per-task replay buffer's pickle: only the rows in use are written, and a loaded buffer samples the same batches."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+from gymnasium import spaces
+
+from sb3_pearl.common.buffers import TaskReplayBuffer
+
+OBS = spaces.Box(-1.0, 1.0, (3,), np.float32)
+ACT = spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+
+def filled_buffer() -> TaskReplayBuffer:
+    """Four tasks of capacity 50: 40 rows, 3 rows, none, and a ring that wrapped (60 adds); task 1 cleared once."""
+    buffer = TaskReplayBuffer(4, 50, OBS, ACT)
+    rng = np.random.default_rng(0)
+
+    def add(task: int, n: int) -> None:
+        for _ in range(n):
+            buffer.add(task, rng.normal(size=3), rng.normal(size=2), float(rng.normal()), rng.normal(size=3), False, True)
+
+    add(0, 40)
+    add(1, 30)
+    buffer.clear(1)  # rows 3..29 of task 1 are stale: never sampled, not written
+    add(1, 3)
+    add(3, 60)
+    return buffer
+
+
+def test_pickle_holds_the_rows_in_use_only_and_loads_to_the_same_samples() -> None:
+    buffer = filled_buffer()
+    np.testing.assert_array_equal(buffer.size, [40, 3, 0, 50])
+    state = buffer.__getstate__()
+    assert state["layout"] == "rows-in-use"
+    assert state["observations"].shape == (40 + 3 + 0 + 50, 3)  # not (4, 50, 3): the largest task does not pad the rest
+    np.testing.assert_array_equal(state["rewards"][40:43, 0], buffer.rewards[1, :3, 0])
+
+    loaded = pickle.loads(pickle.dumps(buffer))
+    assert loaded.observations.shape == (4, 50, 3) and loaded.capacity == 50
+    np.testing.assert_array_equal(loaded.pos, buffer.pos)
+    np.testing.assert_array_equal(loaded.size, buffer.size)
+    for name in TaskReplayBuffer._ARRAYS:
+        for task, n in enumerate(buffer.size):
+            np.testing.assert_array_equal(getattr(loaded, name)[task, :n], getattr(buffer, name)[task, :n])
+    assert not loaded.observations[1, 3:].any()  # the stale rows are gone, where the original still holds them
+    assert buffer.observations[1, 3:30].any()
+
+    tasks = np.array([0, 1, 3, 3])
+    np.random.seed(7)
+    expected = buffer.sample(tasks, 16)
+    np.random.seed(7)
+    got = loaded.sample(tasks, 16)
+    for a, b in zip(expected, got):
+        assert a.shape == (4, 16, a.shape[-1])
+        np.testing.assert_array_equal(a.numpy(), b.numpy())
+
+    loaded.add(1, np.ones(3), np.ones(2), 1.0, np.ones(3), True, False)  # keeps filling where it stopped
+    assert loaded.size[1] == 4 and loaded.dones[1, 3, 0] == 1.0
+
+
+def test_a_padded_pickle_of_an_earlier_version_still_loads() -> None:
+    buffer = filled_buffer()
+    state = buffer.__dict__.copy()
+    for name in TaskReplayBuffer._ARRAYS:
+        state[name] = getattr(buffer, name)[:, :50].copy()  # the earlier layout: (n_tasks, largest size, dim)
+    old = TaskReplayBuffer.__new__(TaskReplayBuffer)
+    old.__setstate__(state)
+    for name in TaskReplayBuffer._ARRAYS:
+        np.testing.assert_array_equal(getattr(old, name), getattr(buffer, name))
