@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from sb3_pearl.experiments.budgets import load_budget
+from sb3_pearl.reproduce import checkpoint
 from sb3_pearl.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from sb3_pearl.reproduce.cli import main
 from sb3_pearl.reproduce.curve import CURVE_FILE, read_curve
@@ -89,6 +90,24 @@ def test_an_interrupted_run_resumes_to_the_same_metrics(
     assert not (folder / CHECKPOINT_DIR).exists()  # removed once result.json is written
     header = (folder / "progress.csv").read_text().splitlines()[0]
     assert "time/total_timesteps" in header  # the training log was continued, not restarted empty
+
+
+def test_a_checkpoint_file_over_the_part_size_is_split_and_resumes_the_same(
+    uninterrupted: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(checkpoint, "PART_BYTES", 4_000)  # as a cheetah-vel buffer over 50 MB, at the smoke preset's size
+    with pytest.raises(Killed):
+        run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 300))
+    folder = tmp_path / FOLDER / CHECKPOINT_DIR
+    state = RunCheckpoint(folder.parent).read_state()
+    assert state is not None and state["num_timesteps"] == 240
+    parts = {key: name for key, name in state["files"].items() if key.startswith("replay.part")}
+    assert "replay" not in state["files"] and len(parts) >= 2, state["files"]
+    assert not (folder / "replay_240.pkl").exists()  # only the parts stay on disk
+    assert all((folder / name).stat().st_size <= 4_000 for name in parts.values())
+    assert (folder / state["files"]["model"]).is_file()  # the model stays whole: only the buffer grows with the run
+    resumed = run_one(*RUN, tmp_path, verbose=0)
+    assert _metrics(resumed) == _metrics(uninterrupted)
 
 
 def test_a_checkpoint_of_other_settings_is_refused(tmp_path: Path) -> None:

@@ -10,6 +10,10 @@ A run folder holds, until its result.json is written, ``checkpoint/``:
   training ends;
 - ``progress_<steps>.csv``: the training log as it was at that checkpoint (the resumed run continues it).
 
+A file over ``PART_BYTES`` (a cheetah-vel replay buffer past ~300k steps) is split into ``<name>.part0``,
+``<name>.part1``, ... of at most ``PART_BYTES`` each, so that a part-way run's checkpoint can be committed where a
+file over 100 MB cannot (git hosts' limit); loading joins them.
+
 Every file is written atomically (temporary file, then rename) under a name of its own, and ``state.json``, which
 names the files of the checkpoint in force, is written last; the previous checkpoint's files are deleted only
 after that. A kill at any moment therefore leaves one complete, consistent checkpoint (the model, the buffer and
@@ -24,6 +28,7 @@ is written.
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
 import time
@@ -40,6 +45,7 @@ CHECKPOINT_DIR = "checkpoint"
 STATE_FILE = "state.json"
 FILE_NAMES = {"model": "model_{}.zip", "replay": "replay_{}.pkl", "progress": "progress_{}.csv"}
 DEFAULT_INTERVAL_S = 600.0  # every 10 minutes of training
+PART_BYTES = 50_000_000  # largest checkpoint file written: git hosts refuse files over 100 MB and warn over 50 MB
 
 Interrupt = Callable[[str, int], None]  # (where, count): tests raise in it to simulate a kill
 
@@ -89,8 +95,9 @@ class RunCheckpoint:
         files = {"model": FILE_NAMES["model"].format(steps)}
         model.save(self.folder / files["model"])
         if getattr(model, "replay_buffer", None) is not None and hasattr(model, "save_replay_buffer"):
-            files["replay"] = FILE_NAMES["replay"].format(steps)
-            model.save_replay_buffer(self.folder / files["replay"])
+            replay = FILE_NAMES["replay"].format(steps)
+            model.save_replay_buffer(self.folder / replay)
+            files.update(self._split(replay, "replay"))
         if progress is not None and progress.is_file():
             files["progress"] = FILE_NAMES["progress"].format(steps)
             with atomic_write(self.folder / files["progress"], "wb") as file:
@@ -101,14 +108,44 @@ class RunCheckpoint:
         """The checkpoint's model on ``env`` (envs' episodes and RNG streams restored), with its replay buffer."""
         files = state["files"]
         model = algo_cls.load(self.folder / files["model"], env=env, device=device)
-        if "replay" in files and hasattr(model, "load_replay_buffer"):
-            model.load_replay_buffer(self.folder / files["replay"])
+        if hasattr(model, "load_replay_buffer"):
+            if "replay" in files:
+                model.load_replay_buffer(self.folder / files["replay"])
+            elif "replay.part0" in files:
+                model.load_replay_buffer(io.BytesIO(self._joined(files, "replay")))
         if int(model.num_timesteps) != int(state["num_timesteps"]):
             raise ValueError(
                 f"{self.folder}: the model is at {model.num_timesteps} steps, the state says {state['num_timesteps']}: "
                 f"delete {self.folder} to restart the run from zero"
             )
         return model
+
+    def _split(self, name: str, key: str) -> dict[str, str]:
+        """
+        Split the file ``name`` into parts of at most ``PART_BYTES`` (each written atomically), then delete it.
+
+        :return: ``{key: name}`` when the file is small enough to stay whole, else ``{f"{key}.part{i}": part name}``
+        """
+        path = self.folder / name
+        if path.stat().st_size <= PART_BYTES:
+            return {key: name}
+        parts: dict[str, str] = {}
+        with path.open("rb") as whole:
+            while chunk := whole.read(PART_BYTES):
+                part = f"{name}.part{len(parts)}"
+                with atomic_write(self.folder / part, "wb") as file:
+                    file.write(chunk)
+                parts[f"{key}.part{len(parts)}"] = part
+        path.unlink()
+        return parts
+
+    def _joined(self, files: dict[str, str], key: str) -> bytes:
+        """The bytes of a file saved in parts (``key.part0``, ``key.part1``, ...), joined in order."""
+        chunks, i = [], 0
+        while f"{key}.part{i}" in files:
+            chunks.append((self.folder / files[f"{key}.part{i}"]).read_bytes())
+            i += 1
+        return b"".join(chunks)
 
     def progress_snapshot(self, state: dict[str, Any]) -> Path | None:
         """The training log saved with the checkpoint, if any."""
