@@ -110,6 +110,37 @@ def test_a_checkpoint_file_over_the_part_size_is_split_and_resumes_the_same(
     assert _metrics(resumed) == _metrics(uninterrupted)
 
 
+def test_status_projects_a_run_at_the_rate_between_its_last_two_checkpoints(tmp_path: Path) -> None:
+    """A run whose first steps were cheap (PEARL's initial pool) is projected at its current rate, not its average."""
+    from sb3_pearl.experiments import get_experiment
+    from sb3_pearl.reproduce.status import run_status
+
+    folder = tmp_path / FOLDER / CHECKPOINT_DIR
+    folder.mkdir(parents=True)
+    (folder / "model_240.zip").write_bytes(b"")
+    state = {"phase": "train", "files": {"model": "model_240.zip"}, "num_timesteps": 240, "phases": {},
+             "spent": {"cpu_s": 24.0, "wall_s": 30.0}}  # fmt: skip
+    experiment = get_experiment("safe-point")
+
+    def left(recent: dict[str, float] | None) -> list[float]:
+        RunCheckpoint(folder.parent).write_state({**state, "recent": recent} if recent else state)
+        rows = run_status(experiment, "smoke", [0, 1], tmp_path, ["safe-point"], ["alpha-0.1"])
+        assert [row.status for row in rows] == ["resumable", "missing"] and all(row.training_only for row in rows)
+        return [row.cpu_left_s for row in rows]
+
+    # 400 steps at the smoke preset: 160 left. Average 0.1 s a step; the last 120 steps at 0.25 s a step.
+    assert left(None) == pytest.approx([16.0, 40.0])  # a state of an earlier version: the average
+    assert left({"cpu_s": 30.0, "steps": 120}) == pytest.approx([40.0, 24.0 + 40.0])  # seed 1: seed 0's projected total
+
+
+def test_a_resumed_run_records_the_rate_between_its_checkpoints(tmp_path: Path) -> None:
+    with pytest.raises(Killed):
+        run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 300))
+    state = RunCheckpoint(tmp_path / FOLDER).read_state()
+    assert state is not None and state["recent"]["steps"] == 120  # checkpoints every iteration: 120 and 240 steps
+    assert 0 < state["recent"]["cpu_s"] < state["spent"]["cpu_s"]
+
+
 def test_a_checkpoint_of_other_settings_is_refused(tmp_path: Path) -> None:
     with pytest.raises(Killed):
         run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 150))

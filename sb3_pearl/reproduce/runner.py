@@ -199,22 +199,29 @@ def run_one(
 
     files: dict[str, str] = dict(state["files"]) if state is not None else {}
 
+    # The CPU seconds and env steps at the last state written: the steps since then give the current rate, which
+    # `reproduce status` prefers to the run's average (PEARL's initial pool makes its first steps far cheaper).
+    last = {"cpu_s": spent["cpu_s"], "steps": int(state["num_timesteps"]) if state is not None else 0}
+    recent: dict[str, float] = dict(state.get("recent") or {}) if state is not None else {}
+
     def save_state(phase: str, model: Any, written: dict[str, str] | None = None) -> None:
         if written is not None:
             files.clear()
             files.update(written)
         if phase == "train":  # the training time of every segment so far (a resumed run adds its own)
             phases["train_s"] = train_s_before + time.time() - train_start
+        cpu_s = spent["cpu_s"] + time.process_time() - segment_cpu
+        if phase == "train" and model.num_timesteps > last["steps"]:
+            recent.update(cpu_s=cpu_s - last["cpu_s"], steps=int(model.num_timesteps) - last["steps"])
+        last.update(cpu_s=cpu_s, steps=int(model.num_timesteps))
         checkpoint.write_state(
             {
                 "identity": identity,
                 "phase": phase,
                 "files": files,
                 "num_timesteps": int(model.num_timesteps),
-                "spent": {
-                    "cpu_s": spent["cpu_s"] + time.process_time() - segment_cpu,
-                    "wall_s": spent["wall_s"] + time.time() - segment_wall,
-                },
+                "spent": {"cpu_s": cpu_s, "wall_s": spent["wall_s"] + time.time() - segment_wall},
+                "recent": recent,  # the training's CPU seconds and env steps between its last two checkpoints
                 "phases": phases,
             }
         )

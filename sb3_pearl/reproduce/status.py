@@ -1,11 +1,14 @@
 """``reproduce status``: which planned runs are finished, resumable (a checkpoint) or missing, and the CPU time left.
 
-CPU time still needed, per run: a resumable run in training, its CPU seconds per env step so far times the steps
-left, plus the evaluation time of its finished siblings; a run in evaluation, that evaluation time; a missing run,
-the mean CPU time of the finished runs of the same family and algorithm in the plan. Where no run of that family and
-algorithm has finished, the evaluation's cost is unknown and the estimate counts the training only (said in the
-progress column): a resumable run's own rate, a missing run's at the rate of a sibling in training (unknown when there
-is none either).
+CPU time still needed, per run: a resumable run in training, its CPU seconds per env step times the steps left, plus
+the evaluation time of its finished siblings; a run in evaluation, that evaluation time; a missing run, the mean CPU
+time of the finished runs of the same family and algorithm in the plan. The rate is the one between the run's last two
+checkpoints where it has two (its average otherwise): PEARL's first iteration collects its initial pool with a few
+gradient steps, so a run's average rate after it is several times too low (a cheetah-vel run: 0.12 CPU hours for its
+first 200k steps, ~6 for the 300k after them). Where no run of that family and algorithm has finished, the
+evaluation's cost is unknown and the estimate counts the training only (said in the progress column): a resumable
+run's own rate, a missing run's the projected training time of its siblings in training (unknown when there is none
+either).
 Finished runs written before the CPU time was recorded count their wall time.
 """
 
@@ -86,16 +89,27 @@ def run_status(
         family, algo = experiment.family(key.family).budget_name, experiment.variant(key.variant).algo
         return int(load_budget(budget_preset, family, algo)["n_timesteps"])
 
-    def training_rate(key: RunKey) -> float:
-        """CPU seconds per env step of the training of this family and algorithm's runs in training so far (nan: none)."""
+    def per_step(state: dict[str, Any]) -> float:
+        """CPU seconds per env step of a run in training: between its last two checkpoints, else its average."""
+        recent = state.get("recent") or {}
+        if recent.get("steps", 0) > 0:
+            return float(recent["cpu_s"]) / int(recent["steps"])
+        done = int(state["num_timesteps"])
+        return float(state["spent"]["cpu_s"]) / done if done > 0 else math.nan
+
+    def training_left(key: RunKey, state: dict[str, Any]) -> float:
+        return per_step(state) * (n_timesteps(key) - int(state["num_timesteps"]))
+
+    def projected_training(key: RunKey) -> float:
+        """The mean projected training CPU time of this family and algorithm's runs in training (nan: none)."""
         algo = experiment.variant(key.variant).algo
-        rates = [
-            float(state["spent"]["cpu_s"]) / int(state["num_timesteps"])
+        totals = [
+            float(state["spent"]["cpu_s"]) + training_left(other, state)
             for other, state in states.items()
             if state is not None and state["phase"] == "train" and int(state["num_timesteps"]) > 0
             if other.family == key.family and experiment.variant(other.variant).algo == algo
         ]
-        return mean(rates)
+        return mean(totals)
 
     rows = []
     for key in keys:
@@ -108,7 +122,7 @@ def run_status(
         state = states[key]
         if state is None:
             # no finished sibling: the training alone at the rate of a sibling in training (a lower bound)
-            left = mean([t for t, _ in known]) if known else training_rate(key) * n_timesteps(key)
+            left = mean([t for t, _ in known]) if known else projected_training(key)
             partial = not known and math.isfinite(left)
             rows.append(RunStatus(key, "missing", "- (training only)" if partial else "-", 0.0, left, partial))
             continue
@@ -116,8 +130,7 @@ def run_status(
         done, cpu = int(state["num_timesteps"]), float(state["spent"]["cpu_s"])
         partial = False
         if state["phase"] == "train":
-            per_step = cpu / done if done > 0 else math.nan
-            left = per_step * (n_total - done) + (evaluation if math.isfinite(evaluation) else 0.0)
+            left = training_left(key, state) + (evaluation if math.isfinite(evaluation) else 0.0)
             progress = f"train {done}/{n_total} steps ({100 * done / n_total:.0f}%)"
             partial = not math.isfinite(evaluation)  # no finished sibling says what its evaluation costs
             if partial:
