@@ -38,7 +38,9 @@ def test_pickle_holds_the_rows_in_use_only_and_loads_to_the_same_samples() -> No
     assert state["observations"].shape == (40 + 3 + 0 + 50, 3)  # not (4, 50, 3): the largest task does not pad the rest
     np.testing.assert_array_equal(state["rewards"][40:43, 0], buffer.rewards[1, :3, 0])
 
-    loaded = pickle.loads(pickle.dumps(buffer))
+    pickled = pickle.dumps(buffer)
+    loaded = pickle.loads(pickled)
+    assert pickle.dumps(loaded) == pickled  # a loaded buffer saved again writes the same bytes
     assert loaded.observations.shape == (4, 50, 3) and loaded.capacity == 50
     np.testing.assert_array_equal(loaded.pos, buffer.pos)
     np.testing.assert_array_equal(loaded.size, buffer.size)

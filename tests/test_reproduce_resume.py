@@ -136,9 +136,15 @@ def test_status_projects_a_run_at_the_rate_between_its_last_two_checkpoints(tmp_
 def test_a_resumed_run_records_the_rate_between_its_checkpoints(tmp_path: Path) -> None:
     with pytest.raises(Killed):
         run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 300))
-    state = RunCheckpoint(tmp_path / FOLDER).read_state()
-    assert state is not None and state["recent"]["steps"] == 120  # checkpoints every iteration: 120 and 240 steps
-    assert 0 < state["recent"]["cpu_s"] < state["spent"]["cpu_s"]
+    first = RunCheckpoint(tmp_path / FOLDER).read_state()
+    assert first is not None and first["recent"]["steps"] == 120  # checkpoints every iteration: 120 and 240 steps
+    assert 0 < first["recent"]["cpu_s"] < first["spent"]["cpu_s"]
+    with pytest.raises(Killed):  # resumed at 240 (no checkpoint rewritten there), killed after the one at 360
+        run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 390))
+    second = RunCheckpoint(tmp_path / FOLDER).read_state()
+    assert second is not None and second["num_timesteps"] == 360 and second["recent"]["steps"] == 120
+    spent_after_resume = second["spent"]["cpu_s"] - first["spent"]["cpu_s"]
+    assert second["recent"]["cpu_s"] == pytest.approx(spent_after_resume)  # the resumed segment: 240 -> 360
 
 
 def test_a_checkpoint_of_other_settings_is_refused(tmp_path: Path) -> None:

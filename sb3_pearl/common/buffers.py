@@ -96,7 +96,7 @@ class TaskReplayBuffer:
         layout = state.pop("layout", "padded")  # "padded": earlier pickles, arrays (n_tasks, largest size, dim)
         if "prior_z" not in state:  # a buffer saved before the flag existed: its z sources are unknown (none marked)
             state["prior_z"] = np.zeros_like(state["rewards"])
-        self.__dict__.update({k: v for k, v in state.items() if k not in self._ARRAYS})
+        self.__dict__.update(state)  # every attribute in its saved place (a re-pickle writes the same bytes)
         used = int(self.size.max()) if self.size.size else 0
         held = self._rows_in_use(used)
         for name in self._ARRAYS:

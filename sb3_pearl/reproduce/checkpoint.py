@@ -10,9 +10,11 @@ A run folder holds, until its result.json is written, ``checkpoint/``:
   training ends;
 - ``progress_<steps>.csv``: the training log as it was at that checkpoint (the resumed run continues it).
 
-A file over ``PART_BYTES`` (a cheetah-vel replay buffer past ~300k steps) is split into ``<name>.part0``,
-``<name>.part1``, ... of at most ``PART_BYTES`` each, so that a part-way run's checkpoint can be committed where a
-file over 100 MB cannot (git hosts' limit); loading joins them.
+A replay buffer over ``PART_BYTES`` (a cheetah-vel buffer from ~150k steps) is written as ``<name>.part0``,
+``<name>.part1``, ... of at most ``PART_BYTES`` each, never whole, so that a part-way run's checkpoint can be
+committed where a file over 100 MB cannot (git hosts' limit); loading joins them. No checkpoint is written at the
+step of the one in force (a resumed run's first iteration start): parts rewritten under the same names could
+otherwise pair with the old ones if a kill came between them.
 
 Every file is written atomically (temporary file, then rename) under a name of its own, and ``state.json``, which
 names the files of the checkpoint in force, is written last; the previous checkpoint's files are deleted only
@@ -95,9 +97,9 @@ class RunCheckpoint:
         files = {"model": FILE_NAMES["model"].format(steps)}
         model.save(self.folder / files["model"])
         if getattr(model, "replay_buffer", None) is not None and hasattr(model, "save_replay_buffer"):
-            replay = FILE_NAMES["replay"].format(steps)
-            model.save_replay_buffer(self.folder / replay)
-            files.update(self._split(replay, "replay"))
+            pickled = _Unclosed()  # in memory first: a kill never leaves a whole buffer over the part size on disk
+            model.save_replay_buffer(pickled)
+            files.update(self._write_parts(FILE_NAMES["replay"].format(steps), pickled.getvalue(), "replay"))
         if progress is not None and progress.is_file():
             files["progress"] = FILE_NAMES["progress"].format(steps)
             with atomic_write(self.folder / files["progress"], "wb") as file:
@@ -120,24 +122,18 @@ class RunCheckpoint:
             )
         return model
 
-    def _split(self, name: str, key: str) -> dict[str, str]:
+    def _write_parts(self, name: str, data: bytes, key: str) -> dict[str, str]:
         """
-        Split the file ``name`` into parts of at most ``PART_BYTES`` (each written atomically), then delete it.
+        Write ``data`` as the file ``name``, or over ``PART_BYTES`` as ``name.part0``, ``name.part1``, ... (each atomically).
 
-        :return: ``{key: name}`` when the file is small enough to stay whole, else ``{f"{key}.part{i}": part name}``
+        :return: ``{key: name}`` for a whole file, else ``{f"{key}.part{i}": part name}``
         """
-        path = self.folder / name
-        if path.stat().st_size <= PART_BYTES:
-            return {key: name}
-        parts: dict[str, str] = {}
-        with path.open("rb") as whole:
-            while chunk := whole.read(PART_BYTES):
-                part = f"{name}.part{len(parts)}"
-                with atomic_write(self.folder / part, "wb") as file:
-                    file.write(chunk)
-                parts[f"{key}.part{len(parts)}"] = part
-        path.unlink()
-        return parts
+        chunks = [data[i : i + PART_BYTES] for i in range(0, len(data), PART_BYTES)] if len(data) > PART_BYTES else [data]
+        names = [name] if len(chunks) == 1 else [f"{name}.part{i}" for i in range(len(chunks))]
+        for part, chunk in zip(names, chunks):
+            with atomic_write(self.folder / part, "wb") as file:
+                file.write(chunk)
+        return {key: name} if len(chunks) == 1 else {f"{key}.part{i}": part for i, part in enumerate(names)}
 
     def _joined(self, files: dict[str, str], key: str) -> bytes:
         """The bytes of a file saved in parts (``key.part0``, ``key.part1``, ...), joined in order."""
@@ -155,6 +151,13 @@ class RunCheckpoint:
     def remove(self) -> None:
         """Delete the checkpoint (the run is complete)."""
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+class _Unclosed(io.BytesIO):
+    """An in-memory file that SB3's ``save_to_pkl`` cannot close (it closes the file it was given)."""
+
+    def close(self) -> None:
+        pass
 
 
 def csv_logger_continuing(folder: Path, snapshot: Path | None) -> Logger:
@@ -207,6 +210,8 @@ class PeriodicCheckpoint(BaseCallback):
         self.interrupt = interrupt
         self._last = time.monotonic()
         self._iterations = 0
+        state = checkpoint.read_state()
+        self._saved_steps = int(state["num_timesteps"]) if state is not None else -1  # the checkpoint in force
 
     def _on_step(self) -> bool:
         if self.interrupt is not None:
@@ -214,9 +219,10 @@ class PeriodicCheckpoint(BaseCallback):
         return True
 
     def _on_rollout_start(self) -> None:
-        if time.monotonic() - self._last < self.interval_s or self.model.num_timesteps == 0:
+        if time.monotonic() - self._last < self.interval_s or self.model.num_timesteps in (0, self._saved_steps):
             return
         self.on_save(self.checkpoint.save_model(self.model, self.progress))
+        self._saved_steps = int(self.model.num_timesteps)
         self._last = time.monotonic()
         self._iterations += 1
         if self.interrupt is not None:
