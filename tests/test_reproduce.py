@@ -446,6 +446,11 @@ def test_curve_table_and_figure_say_where_a_run_became_competent(tmp_path: Path)
     assert "| not competent | 0.4 (0.4; bar <= 0.3); 0 (0; bar <= 0.1) |" in second
     assert plot_curves(experiment, group, tmp_path / "curves.png") and (tmp_path / "curves.png").is_file()
     assert not plot_curves(experiment, {"pearl": {0: {"family": "walker2d-vel-long", "curve": None}}}, tmp_path / "no.png")
+    assert not any(line.startswith("Published") for line in curve_table(experiment, group))  # none for Walker
+    cheetah = {"pearl": {0: {"family": "cheetah-vel", "curve": curves[0]}}}
+    lines = curve_table(experiment, cheetah)
+    assert lines[-2] == "" and lines[-1].startswith("Published: -44 at 780,000 env steps (an independent PEARL reimpl")
+    assert plot_curves(experiment, cheetah, tmp_path / "cheetah.png")
 
 
 def test_the_merge_tables_at_the_reference_entropy_share_the_runs_of_one_model() -> None:

@@ -14,8 +14,9 @@ from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.reproduce import checkpoint
 from sb3_pearl.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from sb3_pearl.reproduce.cli import main
-from sb3_pearl.reproduce.curve import CURVE_FILE, read_curve
+from sb3_pearl.reproduce.curve import CURVE_FILE, load_partway_curves, read_curve
 from sb3_pearl.reproduce.layout import RESULT_FILE
+from sb3_pearl.reproduce.report import build_report
 from sb3_pearl.reproduce.runner import run_one
 
 RUN = ("safe-point", "safe-point", "alpha-0.1", 0, "smoke")
@@ -184,7 +185,18 @@ def test_a_learning_curve_changes_nothing_else_and_resumes(
         assert row["n_tasks"] == 2 and 0.0 <= row["k0_violation"] <= 1.0 and row["reference_return"] < 0
     with pytest.raises(Killed):  # killed inside iteration 3, after the points at 120 and 240
         run_one(*RUN, tmp_path / "cut", verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 300))
+    # The run in progress: the report draws and lists its curve so far.
+    partway = load_partway_curves(tmp_path / "cut")
+    assert list(partway) == [("safe-point", "smoke", "safe-point")]
+    run = partway[("safe-point", "smoke", "safe-point")]["alpha-0.1"][0]
+    assert [row["env_steps"] for row in run["curve"]] == [120, 240] and run["num_timesteps"] == 240
+    (tmp_path / "figures").mkdir()
+    report = build_report(tmp_path / "cut", tmp_path / "figures", "figures")
+    assert "safe-point, runs in progress (budget `smoke`)" in report, report
+    assert "| PEARL+ (alpha 0.1) | 0 | 240 |" in report and "curves_partway.png" in report
+    assert (tmp_path / "figures" / "reproduce_safe-point_safe-point_smoke_curves_partway.png").is_file()
     run_one(*RUN, tmp_path / "cut", verbose=0)
+    assert load_partway_curves(tmp_path / "cut") == {}  # finished: its curve is in result.json now
     resumed = read_curve(tmp_path / "cut" / FOLDER / CURVE_FILE)
     assert _without_wall_time(resumed) == _without_wall_time(rows)
     assert {row["competent"] for row in rows} <= {0.0, 1.0}  # the family's competence check at every point

@@ -75,6 +75,22 @@ class Criterion:
 
 
 @dataclass(frozen=True)
+class PublishedPoint:
+    """
+    A point of someone else's learning curve on a family, in the reference's metric (the mean return of the last
+    evaluation trajectory on the test tasks), drawn and listed beside our curves at the same env steps.
+
+    :param env_steps: env steps of training at the point
+    :param value: the published return
+    :param source: who measured it, how (e.g. the averaging), and where it is written down
+    """
+
+    env_steps: int
+    value: float
+    source: str
+
+
+@dataclass(frozen=True)
 class PriorBar:
     """
     The task-independent bar of a family's prior-optimality gap: what a policy with no task data scores at k = 0.
@@ -113,6 +129,8 @@ class Family:
     :param return_margin: equivalence margin of the mean return, in this family's reward units (for
         the verdicts of return claims)
     :param prior_bar: the task-independent bar of the prior-optimality gap (None: the family has none)
+    :param published_curve: points of published learning curves of PEARL on this family (``reproduce report`` draws
+        them on the learning-curve figures and lists them under the curve tables)
     """
 
     name: str
@@ -125,6 +143,7 @@ class Family:
     competence: tuple[Criterion, ...] = ()
     return_margin: float = 1.0
     prior_bar: PriorBar | None = None
+    published_curve: tuple[PublishedPoint, ...] = ()
 
     def __post_init__(self) -> None:
         check_name(self.name, "family")

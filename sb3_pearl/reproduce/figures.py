@@ -195,6 +195,8 @@ def plot_curves(
             ax.plot(steps, values.mean(axis=0), color=f"C{color}", label=label)
             if len(runs) > 1:
                 ax.fill_between(steps, values.min(axis=0), values.max(axis=0), color=f"C{color}", alpha=0.2)
+    for point in experiment.family(family_name).published_curve:  # beside ours, at its own env steps
+        axes.flat[0].plot(point.env_steps, point.value, "k*", markersize=10, label=f"published: {point.value:g}")
     for ax, (_, _, ylabel, bar) in zip(axes.flat, panels):
         ax.set_xlabel("env steps")
         ax.set_ylabel(ylabel, fontsize=9)
