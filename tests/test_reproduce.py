@@ -449,8 +449,49 @@ def test_curve_table_and_figure_say_where_a_run_became_competent(tmp_path: Path)
     assert not any(line.startswith("Published") for line in curve_table(experiment, group))  # none for Walker
     cheetah = {"pearl": {0: {"family": "cheetah-vel", "curve": curves[0]}}}
     lines = curve_table(experiment, cheetah)
-    assert lines[-2] == "" and lines[-1].startswith("Published: -44 at 780,000 env steps (an independent PEARL reimpl")
+    assert lines[-2] == "" and lines[-1].startswith("Published: -44 at 780,000 env steps, an independent PyTorch reimpl")
     assert plot_curves(experiment, cheetah, tmp_path / "cheetah.png")
+
+
+def test_the_report_draws_runs_in_progress_and_leaves_out_folders_that_are_not(tmp_path: Path) -> None:
+    """Part-way runs (checkpoint + curve.csv, no result.json) get a section; stray or unreadable folders do not crash it."""
+    from sb3_pearl.reproduce.cells import load_partway_curves
+    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+    from sb3_pearl.reproduce.curve import write_curve
+    from sb3_pearl.reproduce.report import build_report
+
+    def partway(relative: str, steps: int, state: str | None = None) -> None:
+        folder = tmp_path / relative
+        (folder / "checkpoint").mkdir(parents=True)
+        (folder / "checkpoint" / "model.zip").write_bytes(b"")
+        rows = [dict(env_steps=float(s), reference_return=-s / 1000, k0_return=-1.0, k0_violation=0.0, competent=0.0,
+                     criterion_0=1.0) for s in range(200_000, steps + 1, 20_000)]  # fmt: skip
+        write_curve(folder / "curve.csv", rows)
+        if state is not None:
+            (folder / "checkpoint" / "state.json").write_text(state)
+        else:
+            state_fields = {"identity": {"budget_preset": "cpu"}, "phase": "train", "num_timesteps": steps,
+                            "files": {"model": "model.zip"}, "spent": {"cpu_s": 1.0}, "phases": {}}  # fmt: skip
+            RunCheckpoint(folder).write_state(state_fields)
+
+    partway("pearl-reference/cheetah-vel/pearl/seed0", 260_000)
+    partway("pearl-reference/cheetah-vel/pearl/seed1", 300_000)  # seeds part-way at different steps
+    partway("pearl-reference/cheetah-vel/pearl/seed2", 240_000, state="{not json")  # unreadable: left out
+    partway("pearl-reference/cheetah-vel/pearl/seed4", 240_000)  # not a declared seed of pearl-reference
+    partway("pearl-reference/cheetah-vel/pearl/seed0-old", 240_000)  # not a run folder
+    partway("pearl-reference/walker2d-vel/pearl/seed0", 240_000)  # a family pearl-reference does not declare
+    partway("no-such-experiment/cheetah-vel/pearl/seed0", 240_000)
+    groups = load_partway_curves(tmp_path)
+    assert {key: {v: sorted(runs) for v, runs in group.items()} for key, group in groups.items()} == {
+        ("pearl-reference", "cpu", "cheetah-vel"): {"pearl": [0, 1]}
+    }
+    assert groups[("pearl-reference", "cpu", "cheetah-vel")]["pearl"][1]["num_timesteps"] == 300_000
+    (tmp_path / "figures").mkdir()
+    report = build_report(tmp_path, tmp_path / "figures", "figures")
+    assert "No complete run found." in report and "cheetah-vel, runs in progress (budget `cpu`)" in report
+    assert "| PEARL | 0 | 260000 | -260.0 |" in report and "| PEARL | 1 | 300000 | -300.0 |" in report
+    assert "Published: -44 at 780,000 env steps" in report
+    assert (tmp_path / "figures" / "reproduce_pearl-reference_cheetah-vel_cpu_curves_partway.png").is_file()
 
 
 def test_the_merge_tables_at_the_reference_entropy_share_the_runs_of_one_model() -> None:

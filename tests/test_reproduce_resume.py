@@ -12,9 +12,10 @@ import pytest
 
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.reproduce import checkpoint
+from sb3_pearl.reproduce.cells import load_partway_curves
 from sb3_pearl.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from sb3_pearl.reproduce.cli import main
-from sb3_pearl.reproduce.curve import CURVE_FILE, load_partway_curves, read_curve
+from sb3_pearl.reproduce.curve import CURVE_FILE, read_curve
 from sb3_pearl.reproduce.layout import RESULT_FILE
 from sb3_pearl.reproduce.report import build_report
 from sb3_pearl.reproduce.runner import run_one

@@ -128,8 +128,8 @@ HALF_CHEETAH_VEL = Family(
         PublishedPoint(
             780_000,
             -44.0,
-            "an independent PEARL reimplementation with the reference configuration (200-step episodes, mean of its "
-            "last 10 evaluations), as the project's reference notes record it",
+            "an independent PyTorch reimplementation of PEARL (200-step episodes, automatic entropy temperature where the "
+            "reference fixes it, the mean of its last 10 evaluations; docs/references.md)",
         ),
     ),
 )

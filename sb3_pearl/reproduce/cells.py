@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections import defaultdict
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from sb3_pearl.evaluation.statistics import wilson_interval
 from sb3_pearl.experiments import EXPERIMENTS
-from sb3_pearl.reproduce.layout import find_results, read_result
+from sb3_pearl.reproduce.layout import RESULT_FILE, find_results, read_result
 from sb3_pearl.reproduce.stats import Interval, t_interval
 
 METRIC_KEYS = {"violation": "violation_rate", "return": "return_mean"}
@@ -47,6 +49,49 @@ def load_groups(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str
         result = read_result(path)
         key = (result["experiment"], result["budget_preset"], result["family"])
         groups[key][result["variant"]][int(result["seed"])] = result
+    return _shared_and_declared(groups)
+
+
+def load_partway_curves(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str], Group]:
+    """
+    The learning curves so far of the runs in progress, grouped as :func:`load_groups` groups complete runs: a run
+    folder with a readable checkpoint and a ``curve.csv`` but no result.json (a run committed part-way, to be resumed).
+    Folders that are not runs of a declared experiment and family, or whose checkpoint cannot be read, are left out.
+
+    :param results_dir: root of the results layout
+    :return: (experiment, budget preset, family) -> variant -> seed -> ``{"experiment", "budget_preset", "family",
+        "variant", "seed", "num_timesteps", "curve"}`` (the fields of a result.json that the curve figure and table read)
+    """
+    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+    from sb3_pearl.reproduce.curve import CURVE_FILE, read_curve
+
+    groups: dict[tuple[str, str, str], Group] = defaultdict(lambda: defaultdict(dict))
+    for curve_path in sorted(Path(results_dir).glob(f"*/*/*/seed*/{CURVE_FILE}")):
+        folder = curve_path.parent
+        experiment_name, family, variant = folder.parts[-4:-1]
+        experiment = EXPERIMENTS.get(experiment_name)
+        seed = re.fullmatch(r"seed(\d+)", folder.name)
+        if (folder / RESULT_FILE).exists() or experiment is None or seed is None:
+            continue
+        if family not in {f.name for f in experiment.families} or variant not in {v.name for v in experiment.variants}:
+            continue
+        try:
+            state = RunCheckpoint(folder).read_state()
+        except ValueError:  # an unreadable state.json: `reproduce run` says what to do with it
+            continue
+        rows = read_curve(curve_path)
+        if state is None or not rows:
+            continue
+        budget = str((state.get("identity") or {}).get("budget_preset", "unknown"))
+        groups[(experiment_name, budget, family)][variant][int(seed.group(1))] = {
+            "experiment": experiment_name, "budget_preset": budget, "family": family, "variant": variant,
+            "seed": int(seed.group(1)), "num_timesteps": int(state.get("num_timesteps", 0)), "curve": rows,
+        }  # fmt: skip
+    return _shared_and_declared(groups)
+
+
+def _shared_and_declared(groups: dict[tuple[str, str, str], Group]) -> dict[tuple[str, str, str], Group]:
+    """Shared variants' runs joined to every experiment that shares them; each experiment's declared seeds only."""
     # Shared variants: the owner's runs join the groups of every experiment that shares them (when it has runs).
     for (experiment_name, budget, family), group in list(groups.items()):
         for other in EXPERIMENTS.values():

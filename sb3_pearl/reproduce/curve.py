@@ -22,7 +22,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -185,37 +184,6 @@ def curve_value(row: dict[str, Any], key: str) -> float:
     return math.nan if value is None else float(value)
 
 
-PartwayGroup = dict[str, dict[int, dict[str, Any]]]  # variant -> seed -> the curve fields of a result.json
-
-
-def load_partway_curves(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str], PartwayGroup]:
-    """
-    The learning curves so far of the runs in progress: a run folder with a checkpoint and a ``curve.csv`` but no
-    result.json (a run committed part-way, to be resumed).
-
-    :param results_dir: root of the results layout
-    :return: (experiment, budget preset, family) -> variant -> seed -> ``{"experiment", "budget_preset", "family",
-        "variant", "seed", "num_timesteps", "curve"}`` (the fields of a result.json that the curve figure and table read)
-    """
-    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-    from sb3_pearl.reproduce.layout import RESULT_FILE
-
-    groups: dict[tuple[str, str, str], PartwayGroup] = {}
-    for curve_path in sorted(Path(results_dir).glob(f"*/*/*/seed*/{CURVE_FILE}")):
-        folder = curve_path.parent
-        state = RunCheckpoint(folder).read_state()
-        rows = read_curve(curve_path)
-        if (folder / RESULT_FILE).exists() or state is None or not rows:
-            continue
-        experiment, family, variant = folder.parts[-4:-1]
-        budget = str((state.get("identity") or {}).get("budget_preset", "unknown"))
-        seed = int(folder.name.removeprefix("seed"))
-        run = {"experiment": experiment, "budget_preset": budget, "family": family, "variant": variant, "seed": seed,
-               "num_timesteps": int(state["num_timesteps"]), "curve": rows}  # fmt: skip
-        groups.setdefault((experiment, budget, family), {}).setdefault(variant, {})[seed] = run
-    return groups
-
-
 def curve_table(experiment: Any, group: Any) -> list[str]:
     """
     Each run's learning curve (result.json ``curve``) in one row, for ``reproduce report``: its last point, and where
@@ -257,5 +225,5 @@ def curve_table(experiment: Any, group: Any) -> list[str]:
     published = [point for family in sorted(families) for point in experiment.family(family).published_curve]
     if published:
         lines.append("")
-    lines += [f"Published: {p.value:g} at {p.env_steps:,} env steps ({p.source}); the star in the figure." for p in published]
+    lines += [f"Published: {p.value:g} at {p.env_steps:,} env steps, {p.source}; the star in the figure." for p in published]
     return lines

@@ -13,6 +13,7 @@ tasks, env seeds and z0 draws, so a line is a paired comparison.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import textwrap
@@ -146,6 +147,7 @@ def plot_curves(
     group: Mapping[str, Mapping[int, dict[str, Any]]],
     path: str | os.PathLike[str],
     title: str = "",
+    per_seed: bool = False,
 ) -> bool:
     """
     The learning curves on the test tasks (result.json ``curve``, ``sb3_pearl/reproduce/curve.py``) of one group.
@@ -158,6 +160,8 @@ def plot_curves(
     :param group: variant -> seed -> result
     :param path: PNG path
     :param title: figure title
+    :param per_seed: one line per seed, each to its own last point (runs in progress reach different env steps),
+        instead of the mean over the env steps every seed has reached
     :return: whether a figure was written (False: no run has a curve)
     """
     curves = {
@@ -187,8 +191,17 @@ def plot_curves(
     for ax in axes.flat[len(panels) :]:
         ax.set_visible(False)
     for color, (name, runs) in enumerate(curves.items()):
-        steps = sorted(set.intersection(*(set(row["env_steps"] for row in rows) for rows in runs)))
         label = f"{experiment.variant(name).label} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
+        if per_seed:
+            seeded = [(seed, r["curve"]) for seed, r in sorted(group[name].items()) if r.get("curve")]
+            variant_label = experiment.variant(name).label
+            for style, (seed, rows) in zip(itertools.cycle(("-", "--", ":", "-.")), seeded):
+                steps = [row["env_steps"] for row in rows]
+                for ax, (key, scale, _, _) in zip(axes.flat, panels):
+                    ys = [curve_value(row, key) * scale for row in rows]
+                    ax.plot(steps, ys, color=f"C{color}", linestyle=style, label=f"{variant_label}, seed {seed}")
+            continue
+        steps = sorted(set.intersection(*(set(row["env_steps"] for row in rows) for rows in runs)))
         for ax, (key, scale, _, _) in zip(axes.flat, panels):
             by_step = [{row["env_steps"]: curve_value(row, key) * scale for row in rows} for rows in runs]
             values = np.array([[points[step] for step in steps] for points in by_step])
@@ -197,6 +210,9 @@ def plot_curves(
                 ax.fill_between(steps, values.min(axis=0), values.max(axis=0), color=f"C{color}", alpha=0.2)
     for point in experiment.family(family_name).published_curve:  # beside ours, at its own env steps
         axes.flat[0].plot(point.env_steps, point.value, "k*", markersize=10, label=f"published: {point.value:g}")
+    right = max(ax.get_xlim()[1] for ax in axes.flat[: len(panels)])
+    for ax in axes.flat[: len(panels)]:  # one env-step axis for every panel (a published point may lie beyond ours)
+        ax.set_xlim(0, right)
     for ax, (_, _, ylabel, bar) in zip(axes.flat, panels):
         ax.set_xlabel("env steps")
         ax.set_ylabel(ylabel, fontsize=9)

@@ -29,8 +29,8 @@ import numpy as np
 from sb3_pearl.evaluation.meta_test import PAPER_KS
 from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Claim, Experiment, resolve_k
-from sb3_pearl.reproduce.cells import Group, cell_stats, last_k, load_groups, seed_values
-from sb3_pearl.reproduce.curve import curve_table, load_partway_curves
+from sb3_pearl.reproduce.cells import Group, cell_stats, last_k, load_groups, load_partway_curves, seed_values
+from sb3_pearl.reproduce.curve import curve_table
 from sb3_pearl.reproduce.layout import find_results
 from sb3_pearl.reproduce.prior_report import prior_critic_table, selection_table
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval, verdict
@@ -386,17 +386,15 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         if plot_seeds(experiment, group, Path(figures_dir) / seeds_name, title=title):
             out += [f"![per-seed rates, {experiment_name} / {family}]({figures_link.rstrip('/')}/{seeds_name})", ""]
     for (experiment_name, budget, family), group in load_partway_curves(results_dir).items():
-        experiment = EXPERIMENTS.get(experiment_name)
-        if experiment is None or not any(v.name in group for v in experiment.variants):
-            continue
+        experiment = EXPERIMENTS[experiment_name]  # the loader keeps declared experiments, families and variants only
         curves_name = f"reproduce_{experiment_name}_{family}_{budget}_curves_partway.png"
         title = f"{experiment.name} / {family} (budget {budget}): runs in progress"
-        if plot_curves(experiment, group, Path(figures_dir) / curves_name, title=title):
+        if plot_curves(experiment, group, Path(figures_dir) / curves_name, title=title, per_seed=True):
             out += [
                 f"### {experiment.title}: {family}, runs in progress (budget `{budget}`)",
                 "",
                 "Runs committed part-way (a checkpoint; the same `reproduce run` command resumes them): their learning "
-                "curves so far, from `curve.csv`. The env steps column is the last curve point.",
+                "curves so far, from `curve.csv`, one line per seed. The env steps column is the last curve point.",
                 "",
                 *curve_table(experiment, group),
                 "",
