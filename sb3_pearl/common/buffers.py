@@ -101,10 +101,11 @@ class TaskReplayBuffer:
         held = self._rows_in_use(used)
         for name in self._ARRAYS:
             stored = state[name]
-            full = np.zeros((self.n_tasks, self.capacity, *stored.shape[1 if layout == "rows-in-use" else 2 :]), stored.dtype)
-            if layout == "rows-in-use":
+            if layout == "rows-in-use":  # (size.sum(), dim)
+                full = np.zeros((self.n_tasks, self.capacity, *stored.shape[1:]), stored.dtype)
                 full[:, :used][held] = stored  # the view writes through to ``full``
-            else:
+            else:  # (n_tasks, largest size, dim)
+                full = np.zeros((self.n_tasks, self.capacity, *stored.shape[2:]), stored.dtype)
                 full[:, : stored.shape[1]] = stored
             setattr(self, name, full)
 

@@ -128,12 +128,12 @@ class RunCheckpoint:
 
         :return: ``{key: name}`` for a whole file, else ``{f"{key}.part{i}": part name}``
         """
-        chunks = [data[i : i + PART_BYTES] for i in range(0, len(data), PART_BYTES)] if len(data) > PART_BYTES else [data]
-        names = [name] if len(chunks) == 1 else [f"{name}.part{i}" for i in range(len(chunks))]
-        for part, chunk in zip(names, chunks):
+        chunks = [data[i : i + PART_BYTES] for i in range(0, len(data), PART_BYTES)] or [data]
+        written = {key: name} if len(chunks) == 1 else {f"{key}.part{i}": f"{name}.part{i}" for i in range(len(chunks))}
+        for part, chunk in zip(written.values(), chunks):
             with atomic_write(self.folder / part, "wb") as file:
                 file.write(chunk)
-        return {key: name} if len(chunks) == 1 else {f"{key}.part{i}": part for i, part in enumerate(names)}
+        return written
 
     def _joined(self, files: dict[str, str], key: str) -> bytes:
         """The bytes of a file saved in parts (``key.part0``, ``key.part1``, ...), joined in order."""
@@ -192,6 +192,7 @@ class PeriodicCheckpoint(BaseCallback):
     :param on_save: called with the files of each save (the runner writes the state naming them)
     :param interrupt: test hook, called as ``interrupt("step", n)`` after every env step and
         ``interrupt("iteration", n)`` after every iteration-start checkpoint
+    :param in_force_steps: env steps of the checkpoint the run resumed from (-1: none); none is written again there
     """
 
     def __init__(
@@ -201,6 +202,7 @@ class PeriodicCheckpoint(BaseCallback):
         interval_s: float,
         on_save: Callable[[dict[str, str]], None],
         interrupt: Interrupt | None = None,
+        in_force_steps: int = -1,
     ) -> None:
         super().__init__()
         self.checkpoint = checkpoint
@@ -210,8 +212,7 @@ class PeriodicCheckpoint(BaseCallback):
         self.interrupt = interrupt
         self._last = time.monotonic()
         self._iterations = 0
-        state = checkpoint.read_state()
-        self._saved_steps = int(state["num_timesteps"]) if state is not None else -1  # the checkpoint in force
+        self._saved_steps = in_force_steps
 
     def _on_step(self) -> bool:
         if self.interrupt is not None:

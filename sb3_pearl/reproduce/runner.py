@@ -201,7 +201,8 @@ def run_one(
 
     # The CPU seconds and env steps at the last state written: the steps since then give the current rate, which
     # `reproduce status` prefers to the run's average (PEARL's initial pool makes its first steps far cheaper).
-    last = {"cpu_s": spent["cpu_s"], "steps": int(state["num_timesteps"]) if state is not None else 0}
+    resumed_steps = int(state["num_timesteps"]) if state is not None else 0  # the checkpoint in force
+    last = {"cpu_s": spent["cpu_s"], "steps": resumed_steps}
     recent: dict[str, float] = dict(state.get("recent") or {}) if state is not None else {}
 
     def save_state(phase: str, model: Any, written: dict[str, str] | None = None) -> None:
@@ -241,7 +242,9 @@ def run_one(
         log(f"[{key.label()}] learn {remaining} of {budget['n_timesteps']} steps", flush=True)
         train_start, train_s_before = time.time(), float(phases.get("train_s", 0.0))
         on_save = lambda written: save_state("train", model, written)  # noqa: E731
-        callbacks: list[BaseCallback] = [PeriodicCheckpoint(checkpoint, progress, checkpoint_interval_s, on_save, interrupt)]
+        callbacks: list[BaseCallback] = [
+            PeriodicCheckpoint(checkpoint, progress, checkpoint_interval_s, on_save, interrupt, in_force_steps=resumed_steps)
+        ]
         curve_env = None
         if "curve" in budget:  # the learning curve on the held-out tasks (docs/reproduce.md, "Learning curves")
             curve_env = gym.make(family.env_id, **env_kwargs)

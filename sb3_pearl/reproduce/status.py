@@ -121,7 +121,7 @@ def run_status(
         evaluation = mean([e for _, e in known])
         state = states[key]
         if state is None:
-            # no finished sibling: the training alone at the rate of a sibling in training (a lower bound)
+            # no finished sibling: the training alone, as projected for its siblings in training (a lower bound)
             left = mean([t for t, _ in known]) if known else projected_training(key)
             partial = not known and math.isfinite(left)
             rows.append(RunStatus(key, "missing", "- (training only)" if partial else "-", 0.0, left, partial))
