@@ -21,6 +21,7 @@ from sb3_pearl.experiments.budgets import (
     model_kwargs,
     validate_entry,
 )
+from sb3_pearl.experiments.families import get_family
 from sb3_pearl.experiments.spec import Claim, Criterion, Experiment, PaperCell, Variant, claims_from_paper, resolve_k
 from sb3_pearl.reproduce.cli import main
 from sb3_pearl.reproduce.competence import criterion_value, evaluate_competence
@@ -298,6 +299,20 @@ def test_presets_load() -> None:
 def test_presets_reject_unknown_names(args: tuple[str, str, str], message: str) -> None:
     with pytest.raises(ValueError, match=message):
         load_budget(*args)
+
+
+def test_walker_reference_family_reduces_only_the_rows_of_the_reference_configuration() -> None:
+    """walker2d-vel-ref at `cpu` is the paper preset's Walker2D-vel PEARL (the reference's) with cheetah-vel's one cut."""
+    experiment = get_experiment("pearl-reference")
+    assert [f.name for f in experiment.families] == ["cheetah-vel", "walker2d-vel-long", "walker2d-vel-ref"]
+    ref = next(f for f in experiment.families if f.name == "walker2d-vel-ref")
+    assert ref.env_id == "Walker2dVelMeta-v0" and ref.competence == get_family("walker2d-vel").competence
+    cpu, paper = load_budget("cpu", "walker2d-vel-ref", "pearl"), load_budget("paper", "walker2d-vel", "pearl")
+    cheetah_cpu, cheetah_paper = load_budget("cpu", "cheetah-vel", "pearl"), load_budget("paper", "cheetah-vel", "pearl")
+    differs = {k for k in cpu["kwargs"].keys() | paper["kwargs"].keys() if cpu["kwargs"].get(k) != paper["kwargs"].get(k)}
+    assert differs == {"batch_size"} and cpu["kwargs"]["batch_size"] == cheetah_cpu["kwargs"]["batch_size"] == 32
+    assert paper["kwargs"]["batch_size"] == cheetah_paper["kwargs"]["batch_size"] == 256
+    assert cpu["n_timesteps"] == 500_000 and cpu["curve"]["every"] == 20_000
 
 
 def test_preset_entry_validation() -> None:
