@@ -255,3 +255,51 @@ def test_the_selection_rule_as_written() -> None:
     assert [r.design for r in select(rank_designs(PRIOR_CRITIC, groups))] == ["cql5", "twin"]  # topped up
     text = "\n".join(selection_table(PRIOR_CRITIC, groups))
     assert "nothing is selected until every design has its runs" in text and "**selected**" not in text
+
+
+def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    """Alpha 1 runs only for the two designs the rule selects, and only once every run it reads is complete: until then
+    `reproduce run` leaves the alpha-1 designs out and `reproduce status` counts them apart; naming one still runs it."""
+    from sb3_pearl.reproduce.cli import main
+    from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, run_dir, write_json_atomic
+    from sb3_pearl.reproduce.prior_report import selection_gate
+    from sb3_pearl.reproduce.status import format_status, run_status
+
+    measures = {"zfree": (0.2, 0.6, -3.0, 0.20), "cql5": (0.1, 0.7, -3.3, 0.05)}  # the two calibrated designs
+    last = (PRIOR_CRITIC.families[-1].name, "cql5", PRIOR_CRITIC.seeds[-1])
+
+    def write(family: str, design: str, seed: int) -> None:
+        variant = f"alpha-0.1-{design}"
+        key = RunKey(PRIOR_CRITIC.owner(variant), family, variant, seed)
+        (run_dir(tmp_path, key)).mkdir(parents=True)
+        fields = {"experiment": key.experiment, "budget_preset": "cpu", "family": family, "variant": variant, "seed": seed,
+                  "meta_test": {"summary": [{"k": 0, "n": 1, "return_mean": 0.0, "violation_rate": 0.0}]}}  # fmt: skip
+        write_json_atomic(run_dir(tmp_path, key) / RESULT_FILE, {**fields, **_run(*measures.get(design, (0.4, 0.1, -1, 0.3)))})
+
+    for family in PRIOR_CRITIC.families:
+        for design in DESIGNS:
+            for seed in PRIOR_CRITIC.seeds:
+                if (family.name, design, seed) != last:
+                    write(family.name, design, seed)
+    gate = selection_gate(PRIOR_CRITIC, "cpu", tmp_path)
+    assert not gate.final and gate.selected == () and gate.held == PRIOR_CRITIC.after_selection
+    rows = run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path)
+    awaiting = [row.key.variant for row in rows if row.status == "awaiting"]
+    assert set(awaiting) == set(PRIOR_CRITIC.after_selection) and len(awaiting) == 7 * 2 * 5
+    assert [row.key for row in rows if row.status == "finished"][-1].variant == "alpha-0.1-cql5"
+    assert f"{len(awaiting)} run(s) await the selection rule" in format_status(rows)
+
+    def planned(*args: str) -> set[str]:
+        capsys.readouterr()
+        assert main(["run", "prior-critic", "--dry-run", "--results-dir", str(tmp_path), *args]) == 0
+        return {line.split()[2] for line in capsys.readouterr().out.splitlines() if line.endswith("}")}
+
+    assert not planned() & set(PRIOR_CRITIC.after_selection)
+    assert planned("--variants", "alpha-1-twin") == {"alpha-1-twin"}  # named: run anyway
+    write(*last)  # the last run the rule reads: the rule selects, ignoring the uncalibrated twin's better return
+    gate = selection_gate(PRIOR_CRITIC, "cpu", tmp_path)
+    assert gate.final and gate.selected == ("alpha-1-zfree", "alpha-1-cql5")
+    assert planned() & set(PRIOR_CRITIC.after_selection) == {"alpha-1-zfree", "alpha-1-cql5"}
+    rows = run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path)
+    assert {row.key.variant for row in rows if row.status == "unselected"} == set(gate.held)
+    assert "of designs the selection rule did not select" in format_status(rows)

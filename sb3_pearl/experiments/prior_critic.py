@@ -103,6 +103,7 @@ PRIOR_CRITIC = Experiment(
     reference="alpha-0",
     claims=SELECTION_CLAIMS,
     shared={name: SAFE_POINT_EXPERIMENT.name for name in _SHARED_SAFE_POINT},
+    after_selection=tuple(f"alpha-1-{design}" for design in DESIGNS),
 )
 
 # -- confirmation: Walker2D-vel -----------------------------------------------------------------------------

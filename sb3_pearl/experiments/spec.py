@@ -271,6 +271,10 @@ class Experiment:
         declares the same variant (same algorithm and overrides) on the same families with the same eval seed, so its
         runs are this experiment's too (planned, skipped and stored under the other experiment's folder, reported
         in both); checked by :func:`check_shared`
+    :param after_selection: variants that run only once the experiment's selection rule has picked them (the
+        ``prior-critic`` experiment: alpha 1 for the two designs its rule selects, docs/pearl.md): until every run the
+        rule reads is complete, ``reproduce run`` without ``--variants`` leaves them out and ``reproduce status`` lists
+        them as awaiting the selection; afterwards the ones not selected are never planned by default
     """
 
     name: str
@@ -285,6 +289,7 @@ class Experiment:
     paper: tuple[PaperCell, ...] = ()
     claims: tuple[Claim, ...] = ()
     shared: Mapping[str, str] = field(default_factory=dict)
+    after_selection: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         check_name(self.name, "experiment")
@@ -302,6 +307,9 @@ class Experiment:
             raise ValueError(
                 f"experiment {self.name}: reference {self.reference!r} is not one of its variants {sorted(variants)}"
             )
+        unknown = sorted(set(self.after_selection) - variants)
+        if unknown:
+            raise ValueError(f"experiment {self.name}: after_selection names unknown variants {unknown}")
         if self.eval_seed in self.seeds:
             raise ValueError(f"experiment {self.name}: eval_seed {self.eval_seed} must differ from the model seeds")
         items: list[PaperCell | Claim] = [*self.paper, *self.claims]

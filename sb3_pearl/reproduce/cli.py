@@ -20,6 +20,7 @@ from typing import Any
 from sb3_pearl.common.checks import positive_int
 from sb3_pearl.experiments import EXPERIMENTS, get_experiment
 from sb3_pearl.experiments.budgets import PRESETS, load_budget
+from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.reproduce.layout import parse_seeds
 
 BACKENDS = ("local", "ray")
@@ -132,6 +133,21 @@ def _list() -> None:
     print(f"budget presets: {', '.join(PRESETS)} (sb3_pearl/config/presets/)")
 
 
+def _variants_after_selection(experiment: Experiment, budget: str, results_dir: str) -> list[str]:
+    """The variants ``run`` plans by default: the ``after_selection`` ones only once the rule has selected them."""
+    from sb3_pearl.reproduce.prior_report import selection_gate
+
+    gate = selection_gate(experiment, budget, results_dir)
+    if gate.held:
+        why = "not selected by" if gate.final else "awaiting"
+        print(
+            f"{experiment.name}: {len(gate.held)} variant(s) {why} the selection rule left out ({', '.join(gate.held)})"
+            + ("" if gate.final else "; run the same command again once the runs the rule reads are complete")
+            + "; name them with --variants to run them anyway"
+        )
+    return [v.name for v in experiment.variants if v.name not in gate.held]
+
+
 def _run(args: argparse.Namespace) -> int:
     from sb3_pearl.reproduce.scheduler import BackendUnavailableError, RunSummary, load_ray_backend, plan_runs, run_experiment
 
@@ -142,7 +158,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.backend != "ray" and given:
         options = ", ".join("--" + name.replace("_", "-") for name in given)
         raise ValueError(f"{options} only apply to --backend ray")
-    planned = plan_runs(experiment, budget, seeds, args.family, args.variants)  # every name and override checked
+    variants = args.variants
+    if variants is None and experiment.after_selection:
+        variants = _variants_after_selection(experiment, budget, args.results_dir)
+    planned = plan_runs(experiment, budget, seeds, args.family, variants)  # every name and override checked
     if not args.dry_run:
         check_results_dir(args.results_dir)
     if len(planned) > CONFIRM_RUNS and not args.yes and not args.dry_run:
@@ -153,7 +172,7 @@ def _run(args: argparse.Namespace) -> int:
             entry = load_budget(budget, experiment.family(key.family).budget_name, variant.algo)
             print(f"{key.label()}: {variant.algo}, {entry['n_timesteps']} steps, meta-test {entry['meta_test']}")
         return 0
-    common: dict[str, Any] = dict(families=args.family, variants=args.variants, force=args.force)
+    common: dict[str, Any] = dict(families=args.family, variants=variants, force=args.force)
     summary: RunSummary
     if args.backend == "ray":
         ray_options = {name: getattr(args, name) for name in given}

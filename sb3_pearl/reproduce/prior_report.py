@@ -10,6 +10,7 @@ experiment: training-task measures only.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
@@ -188,6 +189,48 @@ def select(rows: Sequence[Ranked]) -> list[Ranked]:
     return chosen
 
 
+def incomplete_designs(experiment: Experiment, rows: Sequence[Ranked]) -> list[str]:
+    """The designs without every run the rule reads (each family, each of the experiment's seeds, measured)."""
+    full = len(experiment.families) * len(experiment.seeds)
+    return [r.design for r in rows if r.n_runs < full] + [d for d in DESIGNS if d not in {r.design for r in rows}]
+
+
+class SelectionGate(NamedTuple):
+    """Which of an experiment's ``after_selection`` variants may run (:func:`selection_gate`)."""
+
+    final: bool  # every run the rule reads is complete
+    selected: tuple[str, ...]  # the after_selection variants of the selected designs (empty until final)
+    held: tuple[str, ...]  # the others: awaiting the selection (not final) or not selected (final)
+
+
+def selection_gate(
+    experiment: Experiment, budget_preset: str, results_dir: str | os.PathLike[str], alpha: float = 1.0
+) -> SelectionGate:
+    """
+    The selection rule applied to the complete runs under ``results_dir`` at ``budget_preset``: the variants at
+    ``alpha`` of the designs it selects may run, once every design has all its runs at alpha 0.1.
+
+    :param experiment: an experiment with ``after_selection`` variants (``prior-critic``)
+    :param budget_preset: the budget preset of the runs the rule reads (the one being run)
+    :param results_dir: root of the results layout
+    :param alpha: the prior coefficient of the gated variants
+    :return: the gate
+    """
+    from sb3_pearl.reproduce.cells import load_groups
+
+    gated = tuple(experiment.after_selection)
+    groups = {
+        family: group
+        for (name, budget, family), group in load_groups(results_dir).items()
+        if name == experiment.name and budget == budget_preset
+    }
+    rows = rank_designs(experiment, groups)
+    if not gated or incomplete_designs(experiment, rows):
+        return SelectionGate(False, (), gated)
+    chosen = {f"alpha-{alpha:g}-{r.design}" for r in select(rows)}
+    return SelectionGate(True, tuple(v for v in gated if v in chosen), tuple(v for v in gated if v not in chosen))
+
+
 def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list[str]:
     """The selection rule applied to the runs there are, with how many runs each design has."""
     rows = rank_designs(experiment, groups)
@@ -195,7 +238,7 @@ def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list
         return []
     chosen = {r.design for r in select(rows)}
     full = len(experiment.families) * len(experiment.seeds)
-    partial = [r.design for r in rows if r.n_runs < full] + [d for d in DESIGNS if d not in {r.design for r in rows}]
+    partial = incomplete_designs(experiment, rows)
     lines = [
         "| rank | design | median rel. error | median rank corr. | calibrated | mean return gap, train "
         "| mean violation gap, train (points) | runs | selected |",

@@ -30,7 +30,7 @@ class RunStatus(NamedTuple):
     """One planned run."""
 
     key: RunKey
-    status: str  # "finished", "resumable" or "missing"
+    status: str  # "finished", "resumable", "missing", "awaiting" (the selection rule) or "unselected"
     progress: str
     cpu_spent_s: float
     cpu_left_s: float  # nan: unknown
@@ -65,6 +65,12 @@ def run_status(
     :return: one row per planned run, in plan order
     """
     keys = plan_runs(experiment, budget_preset, seeds, families, variants)
+    held: dict[str, str] = {}  # after_selection variant -> "awaiting" / "unselected" (only when not named explicitly)
+    if variants is None and experiment.after_selection:
+        from sb3_pearl.reproduce.prior_report import selection_gate
+
+        gate = selection_gate(experiment, budget_preset, results_dir)
+        held = dict.fromkeys(gate.held, "unselected" if gate.final else "awaiting")
     finished: dict[RunKey, dict[str, Any]] = {}
     for key in keys:
         path = run_dir(results_dir, key) / RESULT_FILE
@@ -79,9 +85,7 @@ def run_status(
             if other.family == key.family and experiment.variant(other.variant).algo == algo
         ]
 
-    def mean(values: list[float]) -> float:
-        finite = [v for v in values if math.isfinite(v)]
-        return sum(finite) / len(finite) if finite else math.nan
+    mean = mean_finite
 
     states = {key: RunCheckpoint(run_dir(results_dir, key)).read_state() for key in keys if key not in finished}
 
@@ -120,6 +124,11 @@ def run_status(
         known = siblings(key)
         evaluation = mean([e for _, e in known])
         state = states[key]
+        if key.variant in held and state is None:
+            # planned only if the selection rule picks it: its cost is counted apart (format_status)
+            why = "awaiting the selection rule" if held[key.variant] == "awaiting" else "not selected by the rule"
+            rows.append(RunStatus(key, held[key.variant], why, 0.0, mean([t for t, _ in known]) if known else math.nan))
+            continue
         if state is None:
             # no finished sibling: the training alone, as projected for its siblings in training (a lower bound)
             left = mean([t for t, _ in known]) if known else projected_training(key)
@@ -142,6 +151,12 @@ def run_status(
     return rows
 
 
+def mean_finite(values: Sequence[float]) -> float:
+    """The mean of the finite values (nan: none)."""
+    finite = [v for v in values if math.isfinite(v)]
+    return sum(finite) / len(finite) if finite else math.nan
+
+
 def format_status(rows: Sequence[RunStatus]) -> str:
     """The table ``reproduce status`` prints, with the totals."""
 
@@ -152,8 +167,8 @@ def format_status(rows: Sequence[RunStatus]) -> str:
     for row in rows:
         spent_h, left_h = hours(row.cpu_spent_s), hours(row.cpu_left_s)
         lines.append(f"{row.key.label():<58} {row.status:<10} {row.progress:<40} {spent_h:>10} {left_h:>10}")
-    counts = {s: sum(r.status == s for r in rows) for s in ("finished", "resumable", "missing")}
-    left = [r.cpu_left_s for r in rows if r.status != "finished"]
+    counts = {s: sum(r.status == s for r in rows) for s in ("finished", "resumable", "missing", "awaiting")}
+    left = [r.cpu_left_s for r in rows if r.status in ("resumable", "missing")]
     unknown = sum(not math.isfinite(v) for v in left)
     total = sum(v for v in left if math.isfinite(v))
     partial = sum(r.training_only for r in rows)
@@ -163,6 +178,15 @@ def format_status(rows: Sequence[RunStatus]) -> str:
         + (f", plus {unknown} run(s) of unknown cost" if unknown else "")
         + (f"; {partial} estimate(s) count the training only" if partial else "")
     )
+    if counts["awaiting"]:
+        each = mean_finite([r.cpu_left_s for r in rows if r.status == "awaiting"])
+        lines.append(
+            f"{counts['awaiting']} run(s) await the selection rule (about {hours(each)} each, not in the total): "
+            "`reproduce run` plans the selected designs' runs once every run the rule reads is complete."
+        )
+    unselected = sum(r.status == "unselected" for r in rows)
+    if unselected:
+        lines.append(f"{unselected} run(s) of designs the selection rule did not select: not planned, not counted.")
     if counts["resumable"] or counts["missing"]:
         lines.append("The same `reproduce run` command completes them (resumable runs continue from their checkpoints).")
     return "\n".join(lines)
