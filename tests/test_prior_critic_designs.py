@@ -303,3 +303,20 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
     rows = run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path)
     assert {row.key.variant for row in rows if row.status == "unselected"} == set(gate.held)
     assert "of designs the selection rule did not select" in format_status(rows)
+
+
+def test_the_selection_figure_shows_the_measures_the_rule_reads(tmp_path: Any) -> None:
+    from sb3_pearl.reproduce.figures import plot_prior_selection
+
+    groups = {
+        family.name: {"alpha-0.1-zfree": {0: _run(0.2, 0.6, -3.0, 0.2)}, "alpha-1-zfree": {0: _run(0.1, 0.9, -1.0, 0.1)}}
+        for family in PRIOR_CRITIC.families
+    }
+    assert plot_prior_selection(PRIOR_CRITIC, groups, tmp_path / "selection.png", title="t")
+    assert (tmp_path / "selection.png").stat().st_size > 1000
+    # alpha 1 is not what the rule ranks; a run without measures (Fine-Tune, MAML) gives no point
+    assert not plot_prior_selection(
+        PRIOR_CRITIC, {"safe-point": {"alpha-1-zfree": {0: _run(0.1, 0.9, -1, 0)}}}, tmp_path / "a.png"
+    )
+    assert not plot_prior_selection(PRIOR_CRITIC, {"safe-point": {"alpha-0.1": {0: {}}}}, tmp_path / "b.png")
+    assert not (tmp_path / "a.png").exists() and not (tmp_path / "b.png").exists()

@@ -226,3 +226,77 @@ def plot_curves(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return True
+
+
+def plot_prior_selection(
+    experiment: Experiment,
+    groups: Mapping[str, Mapping[str, Mapping[int, dict[str, Any]]]],
+    path: str | os.PathLike[str],
+    title: str = "",
+) -> bool:
+    """
+    The two measures the selection rule reads (docs/pearl.md, "The selection rule"), one point per run, every family
+    of ``groups`` pooled: left, the calibration of the prior term's critic (rank correlation against relative error,
+    the calibrated corner shaded, the design's medians as large markers); right, the prior-optimality gaps on the
+    training tasks (return against violation rate, the design's means as large markers; 0 is the scripted bar).
+
+    :param experiment: the ``prior-critic`` experiment (variant order and labels)
+    :param groups: family -> variant -> seed -> result
+    :param path: PNG path
+    :param title: figure title
+    :return: False (and nothing written) when no run has the measures
+    """
+    from sb3_pearl.experiments.prior_critic import DESIGNS
+    from sb3_pearl.reproduce.prior_report import CALIBRATED_RANK_CORR, CALIBRATED_RELATIVE_ERROR, calibration_of, run_gaps
+
+    markers = dict(zip(groups, "osD^v"))
+    points: dict[str, list[tuple[str, float, float, float, float]]] = {}  # variant -> (family, rel, rank, ret, viol)
+    for family, group in groups.items():
+        for name, runs in group.items():
+            for result in runs.values():
+                _, relative_error, rank_corr = calibration_of(result)
+                return_gap, violation_gap = run_gaps(result, None, "train")
+                if math.isfinite(relative_error) and math.isfinite(rank_corr):
+                    points.setdefault(name, []).append((family, relative_error, rank_corr, return_gap, violation_gap))
+    # the designs the rule ranks (alpha 0.1), with PEARL (the reference) and the paper's form beside them
+    ranked = {experiment.reference, "alpha-0.1", *(f"alpha-0.1-{design}" for design in DESIGNS)}
+    present = [v for v in experiment.variants if v.name in points and v.name in ranked]
+    if not present:
+        return False
+    fig, (ax_cal, ax_gap) = plt.subplots(1, 2, figsize=(13, 6.4))
+    for index, variant in enumerate(present):
+        colour = f"C{index % 10}"
+        rows = np.array([p[1:] for p in points[variant.name]])  # (n_runs, 4): rel, rank, return gap, violation gap
+        for family, *values in points[variant.name]:
+            rel, rank, ret, viol = values
+            ax_cal.scatter(rank, rel, color=colour, marker=markers[family], s=18, alpha=0.5)
+            ax_gap.scatter(ret, 100 * viol, color=colour, marker=markers[family], s=18, alpha=0.5)
+        label = f"{variant.label} ({len(rows)} runs)"
+        ax_cal.scatter(np.median(rows[:, 1]), np.median(rows[:, 0]), color=colour, s=140, edgecolor="black", label=label)
+        ax_gap.scatter(np.nanmean(rows[:, 2]), 100 * np.nanmean(rows[:, 3]), color=colour, s=140, edgecolor="black")
+    ax_cal.set_yscale("log")
+    low, high = ax_cal.get_ylim()
+    ax_cal.fill_between([CALIBRATED_RANK_CORR, 1.0], min(low, 0.01), CALIBRATED_RELATIVE_ERROR, color="green", alpha=0.12)
+    ax_cal.text(CALIBRATED_RANK_CORR + 0.02, CALIBRATED_RELATIVE_ERROR * 0.8, "calibrated", color="green", va="top")
+    ax_cal.set_ylim(min(low, 0.05), high)
+    ax_cal.set_xlim(min(-0.5, ax_cal.get_xlim()[0]), 1.0)
+    ax_cal.set_xlabel("rank correlation of Q~(s0, a, z0) with the Monte-Carlo return")
+    ax_cal.set_ylabel("relative error: mean |Q~ - MC| / mean |MC| (log)")
+    ax_cal.set_title("calibration (large: median over runs)")
+    ax_gap.axhline(0.0, color="black", linewidth=0.8)
+    ax_gap.axvline(0.0, color="black", linewidth=0.8)
+    ax_gap.set_xlabel("k = 0 return minus the scripted bar's (training tasks)")
+    ax_gap.set_ylabel("k = 0 violation rate minus the bar's (points)")
+    ax_gap.set_title("prior-optimality gap (large: mean over runs; bar at 0, 0)")
+    for ax in (ax_cal, ax_gap):
+        ax.grid(alpha=0.3)
+    handles = [
+        plt.Line2D([], [], marker=m, color="grey", linestyle="none", label=f"run, {family}") for family, m in markers.items()
+    ]
+    fig.legend(handles=ax_cal.get_legend_handles_labels()[0] + handles, fontsize=8, loc="lower center", ncol=3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout(rect=(0.0, 0.16, 1.0, 1.0))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True

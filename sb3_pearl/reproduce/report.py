@@ -299,7 +299,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     :param figures_link: how the markdown links to ``figures_dir`` (relative to the output file)
     :return: the markdown
     """
-    from sb3_pearl.reproduce.figures import plot_curves, plot_group, plot_seeds
+    from sb3_pearl.reproduce.figures import plot_curves, plot_group, plot_prior_selection, plot_seeds
 
     groups = load_groups(results_dir)
     out = [
@@ -410,6 +410,12 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         selection = selection_table(experiment, by_family) if experiment.name == "prior-critic" and by_family else []
         if selection:
             out += [f"### {experiment.title}: the rule applied", "", *selection, ""]
+            selection_name = f"reproduce_{experiment.name}_selection_{experiment.budget}.png"
+            if plot_prior_selection(experiment, by_family, Path(figures_dir) / selection_name, title=experiment.title):
+                out += [
+                    f"![the selection rule's measures, {experiment.name}]({figures_link.rstrip('/')}/{selection_name})",
+                    "",
+                ]
     return "\n".join(out)
 
 
