@@ -21,7 +21,7 @@ from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.families import SAFE_POINT
 from sb3_pearl.experiments.prior_critic import DESIGNS, PRIOR_CRITIC, design_variant
 from sb3_pearl.experiments.spec import Experiment, check_shared
-from sb3_pearl.pearl.diagnostics.calibration import rank_correlation
+from sb3_pearl.pearl.diagnostics.calibration import error_measures, rank_correlation
 from sb3_pearl.reproduce.prior_measures import compute_prior_measures, scripted_prior
 from sb3_pearl.reproduce.scheduler import plan_runs
 from tests.conftest import make_discrete_env
@@ -138,6 +138,23 @@ def test_rank_correlation_by_hand() -> None:
     assert np.isnan(rank_correlation(np.ones(4), np.arange(4.0)))
 
 
+def test_the_calibration_measures_and_the_task_blind_reference_by_hand() -> None:
+    """Two z0 draws x two tasks. The targets differ by task; a critic that cannot see the task predicts at best each
+    row's mean, so its errors are the spread over tasks: relative error 1 / 2, rank correlation 3 / (2 * sqrt(4.5))."""
+    target = np.array([[0.0, 2.0], [4.0, 2.0]])  # mean |target| = 2
+    blind = {"task_blind_relative_error": 0.5, "task_blind_rank_corr": 3 / (2 * np.sqrt(4.5))}
+    # target ranks (0, 1.5, 3, 1.5), centred (-1.5, 0, 1.5, 0); the row means' ranks (0.5, 0.5, 2.5, 2.5), centred +-1
+    at_the_reference = error_measures(np.array([[1.0, 1.0], [3.0, 3.0]]), target)
+    assert at_the_reference == pytest.approx({"bias": 0.0, "abs_error_mean": 1.0, "relative_error": 0.5,
+                                              "rank_corr": blind["task_blind_rank_corr"], **blind})  # fmt: skip
+    exact = error_measures(target.copy(), target)  # a critic that sees the task can do better than the reference
+    assert exact == pytest.approx({"bias": 0.0, "abs_error_mean": 0.0, "relative_error": 0.0, "rank_corr": 1.0, **blind})
+    optimistic = error_measures(target + 3.0, target)  # the reference does not depend on the critic
+    assert optimistic["bias"] == 3.0 and optimistic["relative_error"] == 1.5 and optimistic["rank_corr"] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="shape"):
+        error_measures(np.zeros(4), np.zeros(4))
+
+
 def test_a_scripted_policy_through_the_meta_test_protocol() -> None:
     """'still' never moves: every goal is on the unit circle, so each step costs exactly 1, 30 steps, no hazard."""
     env = gym.make("SafePointGoalMeta-v0")
@@ -167,8 +184,9 @@ def test_the_prior_measures_of_a_loaded_model_are_those_of_the_trained_one(tmp_p
     assert (
         calibration["critic"] == "prior critic Q~(s, a) (z-free)" and calibration["n_tasks"] == 4
     )  # all 4 training tasks (at most 8)
-    assert {"bias", "relative_error", "rank_corr"} <= set(calibration)
+    assert {"bias", "relative_error", "rank_corr", "task_blind_relative_error", "task_blind_rank_corr"} <= set(calibration)
     assert calibration["relative_error"] >= 0.0 and -1.0 <= calibration["rank_corr"] <= 1.0
+    assert first["version"] == 2 and calibration["task_blind_relative_error"] >= 0.0
     for part in ("train", "test"):
         gap, mine, bar = (optimality[part][key] for key in ("gap", "model", "bar"))
         assert gap["return"] == pytest.approx(mine["return"] - bar["return"])

@@ -118,6 +118,29 @@ def test_run_is_idempotent_and_force_reruns(results: Path) -> None:
     assert path.stat().st_mtime_ns != before
 
 
+def test_measure_brings_older_measures_up_to_date(results: Path, tmp_path: Path) -> None:
+    """`reproduce measure` redoes a run measured by an earlier version (from its model.zip) and leaves current ones."""
+    import json
+    import shutil
+
+    from sb3_pearl.reproduce.prior_measures import MEASURES_VERSION
+
+    folder = tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
+    shutil.copytree(run_folder(results, "alpha-0.1"), folder)
+    path = folder / "result.json"
+    current = json.loads(path.read_text())
+    assert current["prior_critic"]["version"] == MEASURES_VERSION
+    older = json.loads(path.read_text())
+    older["prior_critic"]["version"] = MEASURES_VERSION - 1
+    for key in ("task_blind_relative_error", "task_blind_rank_corr"):
+        del older["prior_critic"]["calibration"][key]
+    path.write_text(json.dumps(older))
+    assert "1 run(s) measured" in reproduce("measure", "--results-dir", str(tmp_path)).stdout
+    assert json.loads(path.read_text()) == current  # the measures of the run's own end, from its model.zip
+    assert "0 run(s) measured" in reproduce("measure", "--results-dir", str(tmp_path)).stdout
+    assert "1 run(s) measured" in reproduce("measure", "--force", "--results-dir", str(tmp_path)).stdout
+
+
 def test_report_builds_tables_and_figures(results: Path, tmp_path: Path) -> None:
     out = tmp_path / "docs" / "results.md"
     out.parent.mkdir()

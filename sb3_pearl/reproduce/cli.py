@@ -108,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
     status.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
 
     measure = sub.add_parser(
-        "measure", help="fill in the prior-critic measures of runs written before they existed (from model.zip)"
+        "measure", help="fill in the prior-critic measures where missing or of an earlier version (from model.zip)"
     )
     measure.add_argument("experiments", nargs="*", help="only these experiments (default: all)")
     measure.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")

@@ -36,7 +36,7 @@ from sb3_pearl.pearl.diagnostics import compute_calibration
 N_CALIBRATION_TASKS = 8
 N_CALIBRATION_Z0 = 16
 _CALIBRATION_STREAM = 18  # the derived-seed stream of the calibration draws (issue 18)
-MEASURES_VERSION = 1
+MEASURES_VERSION = 2  # 2: the calibration's task-blind reference (2026-12-03)
 
 
 def scripted_prior(env_id: str, name: str) -> ScriptedPolicy:
@@ -146,7 +146,8 @@ def measure_results(
     results_dir: str | Path, experiments: Sequence[str] | None = None, force: bool = False, echo: Any = print
 ) -> list[Path]:
     """
-    Fill in the ``prior_critic`` section of complete runs written before it existed (``reproduce measure``).
+    Fill in the ``prior_critic`` section of complete runs written before it existed, or by an earlier
+    :data:`MEASURES_VERSION` (``reproduce measure``).
 
     The model is loaded from the run's ``model.zip`` and measured exactly as :func:`run_one` measures it (the
     measures are seeded by the eval seed and the model seed only); result.json is rewritten atomically with the
@@ -186,7 +187,8 @@ def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> 
     if experiments is not None and result.get("experiment") not in experiments:
         return False
     section = result.get("prior_critic")
-    if section is not None and "error" not in section and not force:
+    current = isinstance(section, dict) and "error" not in section and section.get("version", 0) >= MEASURES_VERSION
+    if current and not force:
         return False
     experiment = get_experiment(result["experiment"])
     family = experiment.family(result["family"])

@@ -62,6 +62,19 @@ def calibration_of(result: dict[str, Any]) -> tuple[float, float, float]:
     return tuple(_number(calibration.get(key)) for key in ("bias", "relative_error", "rank_corr"))  # type: ignore[return-value]
 
 
+def task_blind_of(result: dict[str, Any]) -> tuple[float, float]:
+    """(relative error, rank correlation) of the calibration's task-blind reference on the same rollouts (measures
+    version 2; nan before): how close to the bar a critic that cannot see the task comes at best."""
+    calibration = (result.get("prior_critic") or {}).get("calibration") or {}
+    return _number(calibration.get("task_blind_relative_error")), _number(calibration.get("task_blind_rank_corr"))
+
+
+def _task_blind_cell(runs: Sequence[dict[str, Any]]) -> str:
+    """The medians of the task-blind reference over runs, ``rel. error / rank corr.``."""
+    blind = [task_blind_of(r) for r in runs]
+    return f"{_fmt(_nanmedian([b[0] for b in blind]))} / {_fmt(_nanmedian([b[1] for b in blind]))}"
+
+
 def _measured(result: dict[str, Any]) -> bool:
     section = result.get("prior_critic")
     return isinstance(section, dict) and "error" not in section
@@ -89,9 +102,9 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
     bar = experiment.family(family).prior_bar
     bar_runs = _bar_runs(experiment, family, group)
     lines = [
-        "| variant | bias Q~ - MC | rel. error (median) | rank corr. (median) | return gap, train | violation gap, train "
-        "| return gap, test | violation gap, test | seeds |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| variant | bias Q~ - MC | rel. error (median) | rank corr. (median) | task-blind reference: rel. error / rank corr. "
+        "| return gap, train | violation gap, train | return gap, test | violation gap, test | seeds |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for variant in [v.name for v in experiment.variants if v.name in group]:
         runs = {
@@ -111,6 +124,7 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
             _fmt(_nanmean([c[0] for c in calibration]), 1),
             _fmt(_nanmedian([c[1] for c in calibration])),
             _fmt(_nanmedian([c[2] for c in calibration])),
+            _task_blind_cell(list(runs.values())),
             _fmt(_nanmean([g[0] for g in train]), 1),
             _fmt(_nanmean([g[1] for g in train]), 1, 100),
             _fmt(_nanmean([g[0] for g in test]), 1),
@@ -121,7 +135,9 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
     if len(lines) == 2 or bar is None:
         return []
     return [
-        f'Prior critic (docs/pearl.md, "Measures"): calibration on training tasks; prior-optimality gap = the prior '
+        f'Prior critic (docs/pearl.md, "Measures"): calibration on training tasks; the task-blind reference predicts each '
+        "(z0, task) pair by its z0's return averaged over the tasks (the best a critic that cannot see the task does "
+        "on these rollouts, n/a before measures version 2); prior-optimality gap = the prior "
         f"policy's k = 0 return / violation rate (points) minus the bar's, bar: {bar.description}.",
         "",
         *lines,
@@ -138,6 +154,7 @@ class Ranked(NamedTuple):
     return_gap: float
     violation_gap: float
     n_runs: int
+    task_blind: str = "n/a"  # the task-blind reference's medians (not read by the rule)
 
     @property
     def calibrated(self) -> bool:
@@ -170,6 +187,7 @@ def rank_designs(experiment: Experiment, groups: Mapping[str, Group], alpha: flo
                 _nanmean([g[0] for g in gaps]),
                 _nanmean([g[1] for g in gaps]),
                 len(runs),
+                _task_blind_cell(runs),
             )
         )
     rows.sort(key=lambda r: -r.return_gap if math.isfinite(r.return_gap) else math.inf)
@@ -240,14 +258,15 @@ def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list
     full = len(experiment.families) * len(experiment.seeds)
     partial = incomplete_designs(experiment, rows)
     lines = [
-        "| rank | design | median rel. error | median rank corr. | calibrated | mean return gap, train "
-        "| mean violation gap, train (points) | runs | selected |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| rank | design | median rel. error | median rank corr. | calibrated | task-blind reference: rel. error / rank corr. "
+        "| mean return gap, train | mean violation gap, train (points) | runs | selected |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for rank, row in enumerate(rows, start=1):
         lines.append(
             f"| {rank} | {row.design} ({DESIGNS[row.design][0]}) | {_fmt(row.relative_error)} | {_fmt(row.rank_corr)} | "
-            f"{'yes' if row.calibrated else 'no'} | {_fmt(row.return_gap, 1)} | {_fmt(row.violation_gap, 1, 100)} | "
+            f"{'yes' if row.calibrated else 'no'} | {row.task_blind} | {_fmt(row.return_gap, 1)} | "
+            f"{_fmt(row.violation_gap, 1, 100)} | "
             f"{row.n_runs} | {('leading' if partial else '**selected**') if row.design in chosen else ''} |"
         )
     note = (
@@ -258,7 +277,8 @@ def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list
     )
     return [
         'Selection (docs/pearl.md, "The selection rule", written before the runs; training tasks only, alpha 0.1, '
-        f"both crash penalties pooled).{note}",
+        f"both crash penalties pooled).{note} The task-blind reference (medians over the design's runs) is not read by "
+        "the rule: it is how close to the calibration bar a critic that cannot see the task comes on the same rollouts.",
         "",
         *lines,
     ]

@@ -53,6 +53,35 @@ def _average_ranks(values: np.ndarray) -> np.ndarray:
     return ranks
 
 
+def _relative_error(prediction: np.ndarray, target: np.ndarray) -> float:
+    """mean |prediction - target| / mean |target| (nan when the targets are all 0)."""
+    scale = np.abs(target).mean()
+    return float(np.abs(prediction - target).mean() / scale) if scale > 0 else math.nan
+
+
+def error_measures(q: np.ndarray, target: np.ndarray) -> dict[str, float]:
+    """
+    The calibration's error measures of predictions ``q`` against the Monte-Carlo targets, both of shape
+    (n_z0, n_tasks), and the same measures for the task-blind reference (each pair predicted by its row's mean).
+
+    :param q: the critic's values, one per (z0, task) pair
+    :param target: the bootstrapped Monte-Carlo soft returns of the same pairs
+    :return: ``bias``, ``abs_error_mean``, ``relative_error``, ``rank_corr``, ``task_blind_relative_error``,
+        ``task_blind_rank_corr``
+    """
+    if q.ndim != 2 or q.shape != target.shape:
+        raise ValueError(f"q and target must both have shape (n_z0, n_tasks), got {q.shape} and {target.shape}")
+    blind = np.repeat(target.mean(axis=1, keepdims=True), target.shape[1], axis=1)  # (n_z0, n_tasks): the row's mean
+    return {
+        "bias": float((q - target).mean()),
+        "abs_error_mean": float(np.abs(q - target).mean()),
+        "relative_error": _relative_error(q, target),
+        "rank_corr": rank_correlation(q.ravel(), target.ravel()),
+        "task_blind_relative_error": _relative_error(blind, target),
+        "task_blind_rank_corr": rank_correlation(blind.ravel(), target.ravel()),
+    }
+
+
 def compute_calibration(
     model: PEARL,
     env: gym.Env | VecEnv,
@@ -78,6 +107,13 @@ def compute_calibration(
     (z0, task) pairs divided by mean |MC| (scale-free: 0.25 means errors a quarter the size of the
     returns) and ``rank_corr``, Spearman's rank correlation of Q~ and MC over every (z0, task) pair
     (does Q~ order start states and prior draws as their returns do?).
+
+    The prior critic does not see the task, so part of |Q~ - MC| is the spread of the returns over tasks (and over
+    a single stochastic trajectory), which no task-blind critic removes. ``task_blind_relative_error`` and
+    ``task_blind_rank_corr`` are the same two measures for the *task-blind reference*: every (z0, task) pair
+    predicted by its z0's bootstrapped return averaged over the tasks rolled out (in-sample, so slightly optimistic;
+    it ignores what s0 and a0 add). They say how close to the rule's bar (docs/pearl.md) a critic that values the
+    z0 policy exactly on average over tasks would come on the same rollouts.
 
     :param model: the model
     :param env: the env
@@ -129,10 +165,7 @@ def compute_calibration(
         "q_mean": float(q.mean()),
         "mc_return_mean": float(mc.mean()),
         "mc_return_bootstrapped_mean": float(boot.mean()),
-        "bias": float((q - boot).mean()),
-        "abs_error_mean": float(np.abs(q - boot).mean()),
-        "relative_error": float(np.abs(q - boot).mean() / np.abs(boot).mean()) if np.abs(boot).mean() > 0 else math.nan,
-        "rank_corr": rank_correlation(q.ravel(), boot.ravel()),
+        **error_measures(q, boot),
         "q_std_over_z0": float(q_z.std()),
         "mc_std_over_z0": float(boot_z.std()),
         "q_mc_corr_over_z0": corr,
