@@ -119,7 +119,8 @@ def test_run_is_idempotent_and_force_reruns(results: Path) -> None:
 
 
 def test_measure_brings_older_measures_up_to_date(results: Path, tmp_path: Path) -> None:
-    """`reproduce measure` redoes a run measured by an earlier version (from its model.zip) and leaves current ones."""
+    """`reproduce measure` brings a run measured by version 1 up to date (the calibration, from its model.zip) and
+    leaves current ones; --force measures everything again."""
     import json
     import shutil
 
@@ -134,9 +135,12 @@ def test_measure_brings_older_measures_up_to_date(results: Path, tmp_path: Path)
     older["prior_critic"]["version"] = MEASURES_VERSION - 1
     for key in ("task_blind_relative_error", "task_blind_rank_corr"):
         del older["prior_critic"]["calibration"][key]
+    older["prior_critic"]["prior_optimality"]["kept"] = True  # version 1 -> 2 redoes the calibration only
     path.write_text(json.dumps(older))
     assert "1 run(s) measured" in reproduce("measure", "--results-dir", str(tmp_path)).stdout
-    assert json.loads(path.read_text()) == current  # the measures of the run's own end, from its model.zip
+    upgraded = json.loads(path.read_text())
+    assert upgraded["prior_critic"]["prior_optimality"].pop("kept")
+    assert upgraded == current  # the measures of the run's own end, from its model.zip
     assert "0 run(s) measured" in reproduce("measure", "--results-dir", str(tmp_path)).stdout
     assert "1 run(s) measured" in reproduce("measure", "--force", "--results-dir", str(tmp_path)).stdout
 
