@@ -140,6 +140,7 @@ def test_measure_brings_older_measures_up_to_date(results: Path, tmp_path: Path)
     assert "1 run(s) measured" in reproduce("measure", "--results-dir", str(tmp_path)).stdout
     upgraded = json.loads(path.read_text())
     assert upgraded["prior_critic"]["prior_optimality"].pop("kept")
+    assert upgraded["prior_critic"].pop("calibration_remeasured")["from_version"] == 1
     assert upgraded == current  # the measures of the run's own end, from its model.zip
     assert "0 run(s) measured" in reproduce("measure", "--results-dir", str(tmp_path)).stdout
     assert "1 run(s) measured" in reproduce("measure", "--force", "--results-dir", str(tmp_path)).stdout

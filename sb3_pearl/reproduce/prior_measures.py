@@ -181,7 +181,7 @@ def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> 
     """Measure one run, under its lock; its result.json is read here, so nothing written before is overwritten."""
     from sb3_pearl.experiments import get_experiment
     from sb3_pearl.registry import algorithm_class
-    from sb3_pearl.reproduce.layout import MODEL_FILE, read_result, write_json_atomic
+    from sb3_pearl.reproduce.layout import MODEL_FILE, cpu_info, read_result, write_json_atomic
 
     result = read_result(path)
     if experiments is not None and result.get("experiment") not in experiments:
@@ -205,6 +205,8 @@ def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> 
             finally:
                 env.close()
             section["calibration"] = json_value(calibration)
+            # rollouts of chaotic dynamics (MuJoCo) diverge across CPUs: say where the calibration was redone
+            section["calibration_remeasured"] = {"from_version": 1, "cpu": cpu_info()["model"]}
         section["version"] = MEASURES_VERSION
         write_json_atomic(path, result)
         return True
