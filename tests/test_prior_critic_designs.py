@@ -303,9 +303,22 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
     assert not gate.final and gate.selected == () and gate.held == PRIOR_CRITIC.after_selection
     rows = run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path)
     awaiting = [row.key.variant for row in rows if row.status == "awaiting"]
-    assert set(awaiting) == set(PRIOR_CRITIC.after_selection) and len(awaiting) == 7 * 2 * 5
+    # alpha-1-priordata belongs to the safe-point experiment, which plans it whatever the rule says: not gated
+    assert "alpha-1-priordata" not in PRIOR_CRITIC.after_selection and len(PRIOR_CRITIC.after_selection) == 6
+    assert set(awaiting) == set(PRIOR_CRITIC.after_selection) and len(awaiting) == 6 * 2 * 5
     assert [row.key for row in rows if row.status == "finished"][-1].variant == "alpha-0.1-cql5"
     assert f"{len(awaiting)} run(s) await the selection rule" in format_status(rows)
+    # a held run started by naming it keeps its checkpoint; it is still held (out of the total), resumed by naming it
+    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+
+    started = RunKey("prior-critic", PRIOR_CRITIC.families[0].name, "alpha-1-twin", 0)
+    (run_dir(tmp_path, started) / "checkpoint").mkdir(parents=True)
+    (run_dir(tmp_path, started) / "checkpoint" / "model_240.zip").write_bytes(b"")
+    RunCheckpoint(run_dir(tmp_path, started)).write_state({"phase": "train", "files": {"model": "model_240.zip"},
+        "num_timesteps": 240, "phases": {}, "spent": {"cpu_s": 24.0, "wall_s": 30.0}})  # fmt: skip
+    row = next(r for r in run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path) if r.key == started)
+    assert row.status == "awaiting" and "checkpoint at 240 steps (--variants alpha-1-twin)" in row.progress
+    assert row.cpu_spent_s == 24.0
 
     def planned(*args: str) -> set[str]:
         capsys.readouterr()
@@ -338,3 +351,20 @@ def test_the_selection_figure_shows_the_measures_the_rule_reads(tmp_path: Any) -
     )
     assert not plot_prior_selection(PRIOR_CRITIC, {"safe-point": {"alpha-0.1": {0: {}}}}, tmp_path / "b.png")
     assert not (tmp_path / "a.png").exists() and not (tmp_path / "b.png").exists()
+
+
+def test_the_gate_says_which_finished_runs_lack_the_measures(tmp_path: Any) -> None:
+    """A finished run whose measures failed keeps the rule from selecting: the gate names it (`reproduce measure`)."""
+    from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, run_dir, write_json_atomic
+    from sb3_pearl.reproduce.prior_report import selection_gate
+
+    key = RunKey("prior-critic", "safe-point", "alpha-0.1-zfree", 3)
+    run_dir(tmp_path, key).mkdir(parents=True)
+    summary = {"summary": [{"k": 0, "n": 1, "return_mean": 0.0, "violation_rate": 0.0}]}
+    write_json_atomic(run_dir(tmp_path, key) / RESULT_FILE, {"experiment": key.experiment, "budget_preset": "cpu",
+                      "family": key.family, "variant": key.variant, "seed": 3, "meta_test": summary,
+                      "prior_critic": {"error": "Traceback ..."}})  # fmt: skip
+    gate = selection_gate(PRIOR_CRITIC, "cpu", tmp_path)
+    assert not gate.final and gate.unmeasured == ("safe-point alpha-0.1-zfree seed3",)
+    with pytest.raises(ValueError, match="not alpha-1-<design> variants"):
+        selection_gate(dataclasses.replace(PRIOR_CRITIC, after_selection=("alpha-0.1-zfree",)), "cpu", tmp_path)

@@ -409,6 +409,10 @@ def test_spec_validation_errors() -> None:
         Experiment("x", "x", "x", (family,), (pearl, pearl))
     with pytest.raises(ValueError, match="eval_seed"):
         Experiment("x", "x", "x", (family,), (pearl,), seeds=(0, 7), eval_seed=7)
+    with pytest.raises(ValueError, match="after_selection names unknown variants"):
+        Experiment("x", "x", "x", (family,), (pearl,), after_selection=("ghost",))
+    with pytest.raises(ValueError, match="after_selection names shared variants"):
+        Experiment("x", "x", "x", (family,), (pearl,), shared={"pearl": "table3"}, after_selection=("pearl",))
     with pytest.raises(ValueError, match="unknown algo"):
         Variant("sac", "SAC", "sac")
     with pytest.raises(ValueError, match="results folder"):

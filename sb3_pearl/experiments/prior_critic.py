@@ -103,7 +103,8 @@ PRIOR_CRITIC = Experiment(
     reference="alpha-0",
     claims=SELECTION_CLAIMS,
     shared={name: SAFE_POINT_EXPERIMENT.name for name in _SHARED_SAFE_POINT},
-    after_selection=tuple(f"alpha-1-{design}" for design in DESIGNS),
+    # alpha 1 of every design, except those another experiment owns and plans anyway (safe-point's alpha-1-priordata)
+    after_selection=tuple(f"alpha-1-{design}" for design in DESIGNS if f"alpha-1-{design}" not in _SHARED_SAFE_POINT),
 )
 
 # -- confirmation: Walker2D-vel -----------------------------------------------------------------------------

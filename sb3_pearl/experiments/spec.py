@@ -274,7 +274,9 @@ class Experiment:
     :param after_selection: variants that run only once the experiment's selection rule has picked them (the
         ``prior-critic`` experiment: alpha 1 for the two designs its rule selects, docs/pearl.md): until every run the
         rule reads is complete, ``reproduce run`` without ``--variants`` leaves them out and ``reproduce status`` lists
-        them as awaiting the selection; afterwards the ones not selected are never planned by default
+        them as awaiting the selection; afterwards the ones not selected are never planned by default. The one rule
+        implemented is the prior-critic selection (``alpha-1-<design>`` variants,
+        :func:`~sb3_pearl.reproduce.prior_report.selection_gate`); a shared variant cannot be gated (its owner plans it)
     """
 
     name: str
@@ -310,6 +312,12 @@ class Experiment:
         unknown = sorted(set(self.after_selection) - variants)
         if unknown:
             raise ValueError(f"experiment {self.name}: after_selection names unknown variants {unknown}")
+        owned_elsewhere = sorted(set(self.after_selection) & set(self.shared))
+        if owned_elsewhere:
+            raise ValueError(
+                f"experiment {self.name}: after_selection names shared variants {owned_elsewhere}: their owner plans "
+                "them whatever this experiment's rule selects"
+            )
         if self.eval_seed in self.seeds:
             raise ValueError(f"experiment {self.name}: eval_seed {self.eval_seed} must differ from the model seeds")
         items: list[PaperCell | Claim] = [*self.paper, *self.claims]

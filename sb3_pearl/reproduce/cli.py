@@ -145,6 +145,11 @@ def _variants_after_selection(experiment: Experiment, budget: str, results_dir: 
             + ("" if gate.final else "; run the same command again once the runs the rule reads are complete")
             + "; name them with --variants to run them anyway"
         )
+    if gate.unmeasured:
+        print(
+            f"{experiment.name}: {len(gate.unmeasured)} finished run(s) lack the prior-critic measures the rule reads "
+            f"({', '.join(gate.unmeasured)}): `python -m sb3_pearl.reproduce measure {experiment.name}` fills them in"
+        )
     return [v.name for v in experiment.variants if v.name not in gate.held]
 
 

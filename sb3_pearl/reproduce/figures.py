@@ -249,7 +249,7 @@ def plot_prior_selection(
     from sb3_pearl.experiments.prior_critic import DESIGNS
     from sb3_pearl.reproduce.prior_report import CALIBRATED_RANK_CORR, CALIBRATED_RELATIVE_ERROR, calibration_of, run_gaps
 
-    markers = dict(zip(groups, "osD^v"))
+    markers = dict(zip(groups, itertools.cycle("osD^v")))
     points: dict[str, list[tuple[str, float, float, float, float]]] = {}  # variant -> (family, rel, rank, ret, viol)
     for family, group in groups.items():
         for name, runs in group.items():

@@ -63,8 +63,12 @@ def calibration_of(result: dict[str, Any]) -> tuple[float, float, float]:
 
 
 def task_blind_of(result: dict[str, Any]) -> tuple[float, float]:
-    """(relative error, rank correlation) of the calibration's task-blind reference on the same rollouts (measures
-    version 2; nan before): how close to the bar a critic that cannot see the task comes at best."""
+    """
+    The calibration's task-blind reference on the run's rollouts (docs/pearl.md, "Measures").
+
+    :param result: the run's result
+    :return: (relative error, rank correlation); nan before measures version 2 and for runs without a prior critic
+    """
     calibration = (result.get("prior_critic") or {}).get("calibration") or {}
     return _number(calibration.get("task_blind_relative_error")), _number(calibration.get("task_blind_rank_corr"))
 
@@ -136,8 +140,8 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
         return []
     return [
         f'Prior critic (docs/pearl.md, "Measures"): calibration on training tasks; the task-blind reference predicts each '
-        "(z0, task) pair by its z0's return averaged over the tasks (the best a critic that cannot see the task does "
-        "on these rollouts, n/a before measures version 2); prior-optimality gap = the prior "
+        "(z0, task) pair by its z0's bootstrapped return averaged over the tasks (what a task-blind critic fitted "
+        "exactly would predict on these rollouts, n/a before measures version 2); prior-optimality gap = the prior "
         f"policy's k = 0 return / violation rate (points) minus the bar's, bar: {bar.description}.",
         "",
         *lines,
@@ -208,7 +212,13 @@ def select(rows: Sequence[Ranked]) -> list[Ranked]:
 
 
 def incomplete_designs(experiment: Experiment, rows: Sequence[Ranked]) -> list[str]:
-    """The designs without every run the rule reads (each family, each of the experiment's seeds, measured)."""
+    """
+    The designs without every run the rule reads.
+
+    :param experiment: the ``prior-critic`` experiment (its families and seeds)
+    :param rows: :func:`rank_designs`'s rows (measured runs only)
+    :return: the designs with fewer measured runs than families x seeds, and those with none
+    """
     full = len(experiment.families) * len(experiment.seeds)
     return [r.design for r in rows if r.n_runs < full] + [d for d in DESIGNS if d not in {r.design for r in rows}]
 
@@ -216,9 +226,10 @@ def incomplete_designs(experiment: Experiment, rows: Sequence[Ranked]) -> list[s
 class SelectionGate(NamedTuple):
     """Which of an experiment's ``after_selection`` variants may run (:func:`selection_gate`)."""
 
-    final: bool  # every run the rule reads is complete
+    final: bool  # every run the rule reads is complete and measured
     selected: tuple[str, ...]  # the after_selection variants of the selected designs (empty until final)
     held: tuple[str, ...]  # the others: awaiting the selection (not final) or not selected (final)
+    unmeasured: tuple[str, ...] = ()  # finished runs the rule reads that lack the measures (`reproduce measure`)
 
 
 def selection_gate(
@@ -226,9 +237,9 @@ def selection_gate(
 ) -> SelectionGate:
     """
     The selection rule applied to the complete runs under ``results_dir`` at ``budget_preset``: the variants at
-    ``alpha`` of the designs it selects may run, once every design has all its runs at alpha 0.1.
+    ``alpha`` of the designs it selects may run, once every design has all its runs at alpha 0.1, measured.
 
-    :param experiment: an experiment with ``after_selection`` variants (``prior-critic``)
+    :param experiment: an experiment whose ``after_selection`` variants are ``alpha-<alpha>-<design>`` (``prior-critic``)
     :param budget_preset: the budget preset of the runs the rule reads (the one being run)
     :param results_dir: root of the results layout
     :param alpha: the prior coefficient of the gated variants
@@ -237,14 +248,29 @@ def selection_gate(
     from sb3_pearl.reproduce.cells import load_groups
 
     gated = tuple(experiment.after_selection)
+    foreign = [v for v in gated if v.removeprefix(f"alpha-{alpha:g}-") not in DESIGNS]
+    if foreign:
+        raise ValueError(
+            f"experiment {experiment.name}: after_selection variants {foreign} are not alpha-{alpha:g}-<design> variants "
+            f"of the prior-critic rule (designs {sorted(DESIGNS)})"
+        )
     groups = {
         family: group
         for (name, budget, family), group in load_groups(results_dir).items()
         if name == experiment.name and budget == budget_preset
     }
+    ranked = {f"alpha-0.1-{design}" for design in DESIGNS}
+    unmeasured = tuple(
+        f"{family} {variant} seed{seed}"
+        for family, group in groups.items()
+        for variant, runs in group.items()
+        if variant in ranked
+        for seed, result in runs.items()
+        if not _measured(result)
+    )
     rows = rank_designs(experiment, groups)
     if not gated or incomplete_designs(experiment, rows):
-        return SelectionGate(False, (), gated)
+        return SelectionGate(False, (), gated, unmeasured)
     chosen = {f"alpha-{alpha:g}-{r.design}" for r in select(rows)}
     return SelectionGate(True, tuple(v for v in gated if v in chosen), tuple(v for v in gated if v not in chosen))
 
@@ -278,7 +304,7 @@ def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list
     return [
         'Selection (docs/pearl.md, "The selection rule", written before the runs; training tasks only, alpha 0.1, '
         f"both crash penalties pooled).{note} The task-blind reference (medians over the design's runs) is not read by "
-        "the rule: it is how close to the calibration bar a critic that cannot see the task comes on the same rollouts.",
+        "the rule: it is what a task-blind critic fitted exactly would score against the same rollouts.",
         "",
         *lines,
     ]

@@ -85,8 +85,6 @@ def run_status(
             if other.family == key.family and experiment.variant(other.variant).algo == algo
         ]
 
-    mean = mean_finite
-
     states = {key: RunCheckpoint(run_dir(results_dir, key)).read_state() for key in keys if key not in finished}
 
     def n_timesteps(key: RunKey) -> int:
@@ -113,7 +111,7 @@ def run_status(
             if state is not None and state["phase"] == "train" and int(state["num_timesteps"]) > 0
             if other.family == key.family and experiment.variant(other.variant).algo == algo
         ]
-        return mean(totals)
+        return mean_finite(totals)
 
     rows = []
     for key in keys:
@@ -122,16 +120,22 @@ def run_status(
             rows.append(RunStatus(key, "finished", "done", total, 0.0))
             continue
         known = siblings(key)
-        evaluation = mean([e for _, e in known])
+        evaluation = mean_finite([e for _, e in known])
         state = states[key]
-        if key.variant in held and state is None:
-            # planned only if the selection rule picks it: its cost is counted apart (format_status)
+        if key.variant in held:
+            # planned by `run` only if the selection rule picks it: its cost is counted apart (format_status); one
+            # started with --variants keeps its checkpoint, resumed by naming it again
             why = "awaiting the selection rule" if held[key.variant] == "awaiting" else "not selected by the rule"
-            rows.append(RunStatus(key, held[key.variant], why, 0.0, mean([t for t, _ in known]) if known else math.nan))
+            spent = 0.0
+            if state is not None:
+                spent = float(state["spent"]["cpu_s"])
+                why += f", checkpoint at {int(state['num_timesteps'])} steps (--variants {key.variant})"
+            left = mean_finite([t for t, _ in known]) if known else projected_training(key)
+            rows.append(RunStatus(key, held[key.variant], why, spent, left - spent if math.isfinite(left) else left))
             continue
         if state is None:
             # no finished sibling: the training alone, as projected for its siblings in training (a lower bound)
-            left = mean([t for t, _ in known]) if known else projected_training(key)
+            left = mean_finite([t for t, _ in known]) if known else projected_training(key)
             partial = not known and math.isfinite(left)
             rows.append(RunStatus(key, "missing", "- (training only)" if partial else "-", 0.0, left, partial))
             continue
@@ -152,7 +156,12 @@ def run_status(
 
 
 def mean_finite(values: Sequence[float]) -> float:
-    """The mean of the finite values (nan: none)."""
+    """
+    The mean of the finite values.
+
+    :param values: the values (nan / inf are left out)
+    :return: their mean, nan when none is finite
+    """
     finite = [v for v in values if math.isfinite(v)]
     return sum(finite) / len(finite) if finite else math.nan
 
@@ -180,8 +189,9 @@ def format_status(rows: Sequence[RunStatus]) -> str:
     )
     if counts["awaiting"]:
         each = mean_finite([r.cpu_left_s for r in rows if r.status == "awaiting"])
+        cost = f"about {hours(each)} each" if math.isfinite(each) else "cost unknown"
         lines.append(
-            f"{counts['awaiting']} run(s) await the selection rule (about {hours(each)} each, not in the total): "
+            f"{counts['awaiting']} run(s) await the selection rule ({cost}, not in the total): "
             "`reproduce run` plans the selected designs' runs once every run the rule reads is complete."
         )
     unselected = sum(r.status == "unselected" for r in rows)

@@ -203,9 +203,9 @@ def format_diagnostics(diagnostics: dict[str, Any]) -> str:
         f"  MC soft return (horizon only)        {f2(c['mc_return_mean'])}",
         f"  MC soft return + bootstrapped tail   {f2(c['mc_return_bootstrapped_mean'])}",
         f"  bias Q - MC (bootstrapped)           {f2(c['bias'])}   mean |error| {f2(c['abs_error_mean'])}",
-        f"  relative error {f2(c.get('relative_error', math.nan))}, rank correlation {f2(c.get('rank_corr', math.nan))}; "
-        f"task-blind reference {f2(c.get('task_blind_relative_error', math.nan))}, "
-        f"{f2(c.get('task_blind_rank_corr', math.nan))} (bar: under 0.25, over 0.5)",
+        f"  relative error {f2(c.get('relative_error'))}, rank correlation {f2(c.get('rank_corr'))}; "
+        f"task-blind reference {f2(c.get('task_blind_relative_error'))}, "
+        f"{f2(c.get('task_blind_rank_corr'))} (bar: under 0.25, over 0.5)",
         f"  over z0: std Q {f2(c['q_std_over_z0'])}, std MC {f2(c['mc_std_over_z0'])}, "
         f"correlation {f2(c['q_mc_corr_over_z0'])}",
         f"  env return (unscaled, undiscounted)  {f2(c['env_return_mean'])}   mean length {num(c['length_mean'], '.1f')}",

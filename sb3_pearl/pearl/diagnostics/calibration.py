@@ -111,9 +111,10 @@ def compute_calibration(
     The prior critic does not see the task, so part of |Q~ - MC| is the spread of the returns over tasks (and over
     a single stochastic trajectory), which no task-blind critic removes. ``task_blind_relative_error`` and
     ``task_blind_rank_corr`` are the same two measures for the *task-blind reference*: every (z0, task) pair
-    predicted by its z0's bootstrapped return averaged over the tasks rolled out (in-sample, so slightly optimistic;
-    it ignores what s0 and a0 add). They say how close to the rule's bar (docs/pearl.md) a critic that values the
-    z0 policy exactly on average over tasks would come on the same rollouts.
+    predicted by its z0's bootstrapped return averaged over the tasks rolled out, the value a task-blind critic
+    fitted exactly by its squared loss would have (in-sample; it ignores what s0 and a0 add). It is a reference, not
+    a strict floor: the relative error is an L1 measure, and a per-z0 median would score lower. The bootstrapped
+    tail of a time-limited trajectory is the measured critic's own, so the reference moves a little with the critic.
 
     :param model: the model
     :param env: the env
