@@ -19,7 +19,7 @@ from sb3_pearl.evaluation.meta_test import meta_test
 from sb3_pearl.evaluation.scripted import ScriptedPolicy
 from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.families import SAFE_POINT
-from sb3_pearl.experiments.prior_critic import DESIGNS, PRIOR_CRITIC, design_variant
+from sb3_pearl.experiments.prior_critic import DESIGNS, PRIOR_CRITIC, PRIOR_CRITIC_WALKER, design_variant
 from sb3_pearl.experiments.spec import Experiment, check_shared
 from sb3_pearl.pearl.diagnostics.calibration import error_measures, rank_correlation
 from sb3_pearl.reproduce.prior_measures import compute_prior_measures, scripted_prior
@@ -301,6 +301,7 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
                     write(family.name, design, seed)
     gate = selection_gate(PRIOR_CRITIC, "cpu", tmp_path)
     assert not gate.final and gate.selected == () and gate.held == PRIOR_CRITIC.after_selection
+    assert not selection_gate(PRIOR_CRITIC_WALKER, "cpu", tmp_path).final
     rows = run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path)
     awaiting = [row.key.variant for row in rows if row.status == "awaiting"]
     # alpha-1-priordata belongs to the safe-point experiment, which plans it whatever the rule says: not gated
@@ -330,6 +331,10 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
     write(*last)  # the last run the rule reads: the rule selects, ignoring the uncalibrated twin's better return
     gate = selection_gate(PRIOR_CRITIC, "cpu", tmp_path)
     assert gate.final and gate.selected == ("alpha-1-zfree", "alpha-1-cql5")
+    # the Walker confirmation runs the same two designs (its twin and prior-data rows are table1's, never gated)
+    walker = selection_gate(PRIOR_CRITIC_WALKER, "cpu", tmp_path)
+    assert walker.final and walker.selected == ("pearlplus-zfree", "pearlplus-cql5")
+    assert set(walker.held) == {"pearlplus-twin-priordata", "pearlplus-maintarget", "pearlplus-ensemble5"}
     assert planned() & set(PRIOR_CRITIC.after_selection) == {"alpha-1-zfree", "alpha-1-cql5"}
     rows = run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path)
     assert {row.key.variant for row in rows if row.status == "unselected"} == set(gate.held)
@@ -356,7 +361,7 @@ def test_the_selection_figure_shows_the_measures_the_rule_reads(tmp_path: Any) -
 def test_the_gate_says_which_finished_runs_lack_the_measures(tmp_path: Any) -> None:
     """A finished run whose measures failed keeps the rule from selecting: the gate names it (`reproduce measure`)."""
     from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, run_dir, write_json_atomic
-    from sb3_pearl.reproduce.prior_report import selection_gate
+    from sb3_pearl.reproduce.prior_report import design_of, selection_gate
 
     key = RunKey("prior-critic", "safe-point", "alpha-0.1-zfree", 3)
     run_dir(tmp_path, key).mkdir(parents=True)
@@ -366,5 +371,6 @@ def test_the_gate_says_which_finished_runs_lack_the_measures(tmp_path: Any) -> N
                       "prior_critic": {"error": "Traceback ..."}})  # fmt: skip
     gate = selection_gate(PRIOR_CRITIC, "cpu", tmp_path)
     assert not gate.final and gate.unmeasured == ("safe-point alpha-0.1-zfree seed3",)
-    with pytest.raises(ValueError, match="not alpha-1-<design> variants"):
-        selection_gate(dataclasses.replace(PRIOR_CRITIC, after_selection=("alpha-0.1-zfree",)), "cpu", tmp_path)
+    with pytest.raises(ValueError, match="do not name a prior-critic design"):
+        selection_gate(dataclasses.replace(PRIOR_CRITIC, shared={}, after_selection=("alpha-1",)), "cpu", tmp_path)
+    assert design_of("alpha-1-twin-priordata") == "twin-priordata" and design_of("pearlplus-twin") == "twin"

@@ -140,4 +140,11 @@ PRIOR_CRITIC_WALKER = Experiment(
     reference="pearl",
     claims=CONFIRMATION_CLAIMS,
     shared={name: TABLE1.name for name in _SHARED_TABLE1},
+    # the designs the prior-critic selection picks; table1's twin and prior-data runs are table1's to plan
+    after_selection=tuple(
+        variant.name
+        for variant in CONFIRMATION_VARIANTS
+        if variant.name.startswith("pearlplus-") and variant.name not in _SHARED_TABLE1
+    ),
+    selected_by="prior-critic",
 )

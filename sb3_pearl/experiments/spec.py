@@ -277,6 +277,8 @@ class Experiment:
         them as awaiting the selection; afterwards the ones not selected are never planned by default. The one rule
         implemented is the prior-critic selection (``alpha-1-<design>`` variants,
         :func:`~sb3_pearl.reproduce.prior_report.selection_gate`); a shared variant cannot be gated (its owner plans it)
+    :param selected_by: the experiment whose rule gates ``after_selection`` (``""``: this one); ``prior-critic-walker``'s
+        designs are those the ``prior-critic`` selection picks
     """
 
     name: str
@@ -292,6 +294,7 @@ class Experiment:
     claims: tuple[Claim, ...] = ()
     shared: Mapping[str, str] = field(default_factory=dict)
     after_selection: tuple[str, ...] = ()
+    selected_by: str = ""
 
     def __post_init__(self) -> None:
         check_name(self.name, "experiment")

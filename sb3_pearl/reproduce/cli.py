@@ -142,7 +142,12 @@ def _variants_after_selection(experiment: Experiment, budget: str, results_dir: 
         why = "not selected by" if gate.final else "awaiting"
         print(
             f"{experiment.name}: {len(gate.held)} variant(s) {why} the selection rule left out ({', '.join(gate.held)})"
-            + ("" if gate.final else "; run the same command again once the runs the rule reads are complete")
+            + (
+                ""
+                if gate.final
+                else f"; run the same command again once the {experiment.selected_by or experiment.name} runs "
+                "the rule reads are complete"
+            )
             + "; name them with --variants to run them anyway"
         )
     if gate.unmeasured:

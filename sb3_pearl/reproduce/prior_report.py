@@ -232,32 +232,40 @@ class SelectionGate(NamedTuple):
     unmeasured: tuple[str, ...] = ()  # finished runs the rule reads that lack the measures (`reproduce measure`)
 
 
-def selection_gate(
-    experiment: Experiment, budget_preset: str, results_dir: str | os.PathLike[str], alpha: float = 1.0
-) -> SelectionGate:
-    """
-    The selection rule applied to the complete runs under ``results_dir`` at ``budget_preset``: the variants at
-    ``alpha`` of the designs it selects may run, once every design has all its runs at alpha 0.1, measured.
+def design_of(variant: str) -> str | None:
+    """The prior-critic design a variant name ends with (``alpha-1-twin-priordata``: ``twin-priordata``), or None."""
+    matches = [design for design in DESIGNS if variant.endswith(f"-{design}")]
+    return max(matches, key=len) if matches else None
 
-    :param experiment: an experiment whose ``after_selection`` variants are ``alpha-<alpha>-<design>`` (``prior-critic``)
-    :param budget_preset: the budget preset of the runs the rule reads (the one being run)
+
+def selection_gate(experiment: Experiment, budget_preset: str, results_dir: str | os.PathLike[str]) -> SelectionGate:
+    """
+    The selection rule applied to the complete runs under ``results_dir``: the ``after_selection`` variants of the
+    designs it selects may run, once every design has all its runs at alpha 0.1, measured.
+
+    :param experiment: an experiment whose ``after_selection`` variants each end with a design's name (``prior-critic``:
+        ``alpha-1-<design>``; ``prior-critic-walker``: ``pearlplus-<design>``, gated by ``selected_by="prior-critic"``)
+    :param budget_preset: the budget preset being run; the rule reads the runs of this preset when the experiment
+        gates itself, and those of the ruling experiment's own preset otherwise
     :param results_dir: root of the results layout
-    :param alpha: the prior coefficient of the gated variants
     :return: the gate
     """
+    from sb3_pearl.experiments import get_experiment
     from sb3_pearl.reproduce.cells import load_groups
 
     gated = tuple(experiment.after_selection)
-    foreign = [v for v in gated if v.removeprefix(f"alpha-{alpha:g}-") not in DESIGNS]
+    foreign = [v for v in gated if design_of(v) is None]
     if foreign:
         raise ValueError(
-            f"experiment {experiment.name}: after_selection variants {foreign} are not alpha-{alpha:g}-<design> variants "
-            f"of the prior-critic rule (designs {sorted(DESIGNS)})"
+            f"experiment {experiment.name}: after_selection variants {foreign} do not name a prior-critic design "
+            f"(a variant name ending with one of {sorted(DESIGNS)})"
         )
+    ruling = get_experiment(experiment.selected_by) if experiment.selected_by else experiment
+    budget = budget_preset if ruling is experiment else ruling.budget
     groups = {
         family: group
-        for (name, budget, family), group in load_groups(results_dir).items()
-        if name == experiment.name and budget == budget_preset
+        for (name, preset, family), group in load_groups(results_dir).items()
+        if name == ruling.name and preset == budget
     }
     ranked = {f"alpha-0.1-{design}" for design in DESIGNS}
     unmeasured = tuple(
@@ -268,11 +276,13 @@ def selection_gate(
         for seed, result in runs.items()
         if not _measured(result)
     )
-    rows = rank_designs(experiment, groups)
-    if not gated or incomplete_designs(experiment, rows):
+    rows = rank_designs(ruling, groups)
+    if not gated or incomplete_designs(ruling, rows):
         return SelectionGate(False, (), gated, unmeasured)
-    chosen = {f"alpha-{alpha:g}-{r.design}" for r in select(rows)}
-    return SelectionGate(True, tuple(v for v in gated if v in chosen), tuple(v for v in gated if v not in chosen))
+    chosen = {r.design for r in select(rows)}
+    return SelectionGate(
+        True, tuple(v for v in gated if design_of(v) in chosen), tuple(v for v in gated if design_of(v) not in chosen)
+    )
 
 
 def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list[str]:
