@@ -55,7 +55,8 @@ def test_pickle_holds_the_rows_in_use_only_and_loads_to_the_same_samples() -> No
     expected = buffer.sample(tasks, 16)
     np.random.seed(7)
     got = loaded.sample(tasks, 16)
-    for a, b in zip(expected, got):
+    assert expected.returns is None and got.returns is None  # no Monte-Carlo returns unless asked for
+    for a, b in zip(expected[:-1], got[:-1]):
         assert a.shape == (4, 16, a.shape[-1])
         np.testing.assert_array_equal(a.numpy(), b.numpy())
 

@@ -29,6 +29,7 @@ PRIOR_ARGUMENTS = {
     "prior_critic_input",
     "prior_target",
     "prior_conservative_weight",
+    "prior_return_steps",
 }
 
 TINY_BUILD: dict[str, dict[str, Any]] = {
@@ -131,7 +132,7 @@ def test_pearlplus_takes_pearls_arguments_and_its_own() -> None:
     assert constructor_kwargs(PEARLPlus) == constructor_kwargs(PEARL) | PRIOR_ARGUMENTS
     pearl_args = set(inspect.signature(PEARL.__init__).parameters) - {"self"}
     assert constructor_kwargs(PEARLPlus) == (pearl_args | PRIOR_ARGUMENTS) - ZOO_SET_KWARGS
-    assert len(constructor_kwargs(PEARLPlus)) == 38
+    assert len(constructor_kwargs(PEARLPlus)) == 39
 
 
 def test_pearlplus_refuses_a_misspelled_argument() -> None:

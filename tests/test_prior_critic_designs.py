@@ -32,6 +32,8 @@ NEW_DESIGNS: dict[str, dict[str, Any]] = {
     "maintarget": {"prior_target": "main"},
     "ensemble5": {"prior_n_critics": 5},
     "cql": {"prior_conservative_weight": 2.0},
+    "mc": {"prior_target": "mc", "prior_data": "prior"},
+    "mc-3step-cql": {"prior_target": "mc", "prior_return_steps": 3, "prior_conservative_weight": 2.0},
     "all": {"prior_critic_input": "state", "prior_target": "main", "prior_conservative_weight": 2.0, "prior_n_critics": 3},
 }
 
@@ -68,28 +70,49 @@ def _by_hand(model: PEARLPlus, replay: Any, z0: th.Tensor) -> th.Tensor:
     z_free = model.policy.prior_critic_input == "state"
     with th.no_grad():
         probs, log_probs = model.actor.probs(th.cat([next_obs, z0_rows], dim=-1))  # pi(. | s', z0): (N, A)
+        mc = model.prior_target == "mc"
+        if mc:  # Monte-Carlo: the return to the window's end, then the tail from s_{t+k} (sb3_pearl.pearl.returns)
+            next_obs = replay.returns.tail_observations.reshape(t * b, -1)
+            probs, log_probs = model.actor.probs(th.cat([next_obs, z0_rows], dim=-1))
         if model.prior_target == "main":
             nets, x_next = model.critic_target.q_networks, th.cat([next_obs, z0_rows], dim=-1)
         else:
             nets, x_next = model.prior_critic_target.q_networks, next_obs if z_free else th.cat([next_obs, z0_rows], dim=-1)
         q_next = th.stack([net(x_next) for net in nets]).min(dim=0).values  # (N, A)
         v_next = (probs * (q_next - model.ent_coef_tensor * log_probs)).sum(dim=-1)  # (N,)
-        target = model.reward_scale * replay.rewards.reshape(-1) + (1 - replay.dones.reshape(-1)) * model.gamma * v_next
+        if mc:
+            ret = replay.returns
+            returned = model.reward_scale * ret.reward_sum.reshape(-1) - model.ent_coef_tensor * ret.log_prob_sum.reshape(-1)
+            target = returned + ret.discount.reshape(-1) * v_next
+        else:
+            target = model.reward_scale * replay.rewards.reshape(-1) + (1 - replay.dones.reshape(-1)) * model.gamma * v_next
+    # the rows the prior critic is fitted on: all; the prior-z ones (prior_data="prior"); those with a return ("mc")
+    fitted = th.ones(t * b)
+    if model.prior_target == "mc":
+        fitted = replay.returns.ready.reshape(-1)
+    elif model.prior_data == "prior":
+        fitted = replay.prior_z.reshape(-1)
     x = obs if z_free else th.cat([obs, z0_rows], dim=-1)
     loss = th.zeros(())
     for net in model.prior_critic.q_networks:
         q_all = net(x)  # (N, A)
         q_data = q_all[th.arange(len(actions)), actions]
-        loss = loss + ((q_data - target) ** 2).mean()
+        loss = loss + ((q_data - target) ** 2 * fitted).sum() / fitted.sum().clamp(min=1.0)
         if model.prior_conservative_weight > 0:
-            loss = loss + model.prior_conservative_weight * (th.logsumexp(q_all, dim=-1) - q_data).mean()
+            gap = th.logsumexp(q_all, dim=-1) - q_data
+            loss = loss + model.prior_conservative_weight * (gap * fitted).sum() / fitted.sum().clamp(min=1.0)
     return loss
 
 
-@pytest.mark.parametrize("design", ["paper", *sorted(NEW_DESIGNS)])
+@pytest.mark.parametrize("design", ["paper", "priordata", *sorted(NEW_DESIGNS)])
 def test_the_prior_critic_loss_by_hand(design: str, tiny_kwargs: dict[str, Any]) -> None:
-    model = _model(NEW_DESIGNS.get(design, {}), True, tiny_kwargs)
-    replay, context, z0 = model._sample_meta_batch(batch_size=3)
+    model = _model({"priordata": {"prior_data": "prior"}}.get(design, NEW_DESIGNS.get(design, {})), True, tiny_kwargs)
+    model.learn(140, reset_num_timesteps=False)  # an iteration with posterior-z rows after iteration 0's prior ones
+    replay, context, z0 = model._sample_meta_batch(batch_size=8)
+    if model.prior_target == "mc":  # the batch holds rows with and without a return, and tails past the next state
+        ready = replay.returns.ready
+        assert 0 < ready.sum() < ready.numel() and (ready <= replay.prior_z).all()
+        assert not th.equal(replay.returns.tail_observations, replay.next_observations)
     with th.no_grad():  # the targets must differ from the online networks for the test to see which one is used
         for net in (*model.critic_target.q_networks, *model.prior_critic_target.q_networks):
             for p in net.parameters():
@@ -114,7 +137,10 @@ def test_the_designs_build_the_networks_they_say(tiny_kwargs: dict[str, Any]) ->
 def test_the_design_arguments_are_checked_and_saved(tmp_path: Any, tiny_kwargs: dict[str, Any]) -> None:
     for bad, match in (
         ({"prior_critic_input": "z0"}, r"unknown prior_critic_input 'z0'.*\('state_z0', 'state'\)"),
-        ({"prior_target": "own"}, r"unknown prior_target 'own'.*\('prior', 'main'\)"),
+        ({"prior_target": "own"}, r"unknown prior_target 'own'.*\('prior', 'main', 'mc'\)"),
+        ({"prior_return_steps": 5}, r"prior_return_steps=5 sets the horizon.*prior_target='mc'"),
+        ({"prior_target": "mc", "prior_return_steps": -1}, "prior_return_steps must be an integer >= 0"),
+        ({"prior_critic": "shared", "prior_target": "mc"}, "prior_critic='shared' has none"),
         ({"prior_conservative_weight": -1.0}, "prior_conservative_weight"),
         ({"prior_critic": "shared", "prior_target": "main"}, "prior_critic='shared' has none"),
     ):
@@ -284,7 +310,7 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
     from sb3_pearl.reproduce.status import format_status, run_status
 
     measures = {"zfree": (0.2, 0.6, -3.0, 0.20), "cql5": (0.1, 0.7, -3.3, 0.05)}  # the two calibrated designs
-    last = (PRIOR_CRITIC.families[-1].name, "cql5", PRIOR_CRITIC.seeds[-1])
+    last = (PRIOR_CRITIC.families[-1].name, "mc", PRIOR_CRITIC.seeds[-1])
 
     def write(family: str, design: str, seed: int) -> None:
         variant = f"alpha-0.1-{design}"
@@ -305,9 +331,9 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
     rows = run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path)
     awaiting = [row.key.variant for row in rows if row.status == "awaiting"]
     # alpha-1-priordata belongs to the safe-point experiment, which plans it whatever the rule says: not gated
-    assert "alpha-1-priordata" not in PRIOR_CRITIC.after_selection and len(PRIOR_CRITIC.after_selection) == 6
-    assert set(awaiting) == set(PRIOR_CRITIC.after_selection) and len(awaiting) == 6 * 2 * 5
-    assert [row.key for row in rows if row.status == "finished"][-1].variant == "alpha-0.1-cql5"
+    assert "alpha-1-priordata" not in PRIOR_CRITIC.after_selection and len(PRIOR_CRITIC.after_selection) == 7
+    assert set(awaiting) == set(PRIOR_CRITIC.after_selection) and len(awaiting) == 7 * 2 * 5
+    assert [row.key for row in rows if row.status == "finished"][-1].variant == "alpha-0.1-mc"
     assert f"{len(awaiting)} run(s) await the selection rule" in format_status(rows)
     # a held run started by naming it keeps its checkpoint; it is still held (out of the total), resumed by naming it
     from sb3_pearl.reproduce.checkpoint import RunCheckpoint
@@ -334,7 +360,7 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
     # the Walker confirmation runs the same two designs (its twin and prior-data rows are table1's, never gated)
     walker = selection_gate(PRIOR_CRITIC_WALKER, "cpu", tmp_path)
     assert walker.final and walker.selected == ("pearlplus-zfree", "pearlplus-cql5")
-    assert set(walker.held) == {"pearlplus-twin-priordata", "pearlplus-maintarget", "pearlplus-ensemble5"}
+    assert set(walker.held) == {"pearlplus-twin-priordata", "pearlplus-maintarget", "pearlplus-ensemble5", "pearlplus-mc"}
     assert planned() & set(PRIOR_CRITIC.after_selection) == {"alpha-1-zfree", "alpha-1-cql5"}
     rows = run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path)
     assert {row.key.variant for row in rows if row.status == "unselected"} == set(gate.held)

@@ -563,13 +563,16 @@ def test_resume_after_save_load_is_bit_identical(
 
 # partial_iteration="carry": a budget ending inside an iteration keeps it open (with the envs' episodes), so a split
 # anywhere is exact. 100 falls inside iteration 0 (4 x 60 initial steps), 300 inside iteration 1 (240 + 140).
+# With prior_target="mc" the open iteration also holds the trajectory pieces awaiting their Monte-Carlo returns.
 @pytest.mark.parametrize("first", [100, 300])
 @pytest.mark.parametrize("reload", [False, True], ids=["same-process", "save-load"])
+@pytest.mark.parametrize("prior_target", ["prior", "mc"])
 def test_carry_splits_inside_an_iteration_bit_identically(
-    tmp_path: Path, tiny_kwargs: dict[str, Any], first: int, reload: bool
+    tmp_path: Path, tiny_kwargs: dict[str, Any], first: int, reload: bool, prior_target: str
 ) -> None:
     def make() -> PEARL:
-        return tiny_pearl(tiny_kwargs, env=gym.make(NOISY_ENV), seed=0, partial_iteration="carry")  # type: ignore[arg-type]
+        env = gym.make(NOISY_ENV)
+        return tiny_pearl(tiny_kwargs, env=env, seed=0, partial_iteration="carry", prior_target=prior_target)  # type: ignore[arg-type]
 
     unsplit = make().learn(660)
     split = make().learn(first)
@@ -586,6 +589,8 @@ def test_carry_splits_inside_an_iteration_bit_identically(
     assert split.num_timesteps == unsplit.num_timesteps == 660 and split._n_updates == unsplit._n_updates
     expected = _weights(unsplit)
     assert all(th.equal(value, expected[key]) for key, value in _weights(split).items())
+    if prior_target == "mc":
+        assert np.array_equal(split.replay_buffer.rl.return_reward, unsplit.replay_buffer.rl.return_reward)
 
 
 def test_default_trains_the_collected_share_and_a_reset_requeues_an_open_iteration(tiny_kwargs: dict[str, Any]) -> None:

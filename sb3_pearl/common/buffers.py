@@ -17,7 +17,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from sb3_pearl.common.type_aliases import MetaReplaySamples
+from sb3_pearl.common.type_aliases import MetaReplaySamples, ReturnTargets
 
 
 class TaskReplayBuffer:
@@ -29,6 +29,13 @@ class TaskReplayBuffer:
     :param observation_space: flat Box observation space
     :param action_space: Box (actions stored scaled to [-1, 1]) or Discrete (stored as an index)
     """
+
+    # Allocated by enable_returns (ReturnTargets): each (n_tasks, capacity, 1).
+    return_reward: np.ndarray
+    return_log_prob: np.ndarray
+    return_discount: np.ndarray
+    return_tail: np.ndarray  # int64 buffer rows
+    return_ready: np.ndarray
 
     def __init__(self, n_tasks: int, capacity: int, observation_space: spaces.Space, action_space: spaces.Space) -> None:
         if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) != 1:
@@ -47,6 +54,19 @@ class TaskReplayBuffer:
         self.prior_z = np.zeros((n_tasks, capacity, 1), dtype=np.float32)  # 1.0: collected with z from the prior
         self.pos = np.zeros(n_tasks, dtype=np.int64)
         self.size = np.zeros(n_tasks, dtype=np.int64)
+        self.has_returns = False  # the return arrays exist (enable_returns: a prior critic with Monte-Carlo targets)
+
+    def enable_returns(self) -> None:
+        """
+        Allocate the arrays of :meth:`write_returns` (once): per row, the discounted reward and log-probability sums to
+        the end of its trajectory piece, the tail's discount and row, and whether they are known yet.
+        """
+        if self.has_returns:
+            return
+        shape = (self.n_tasks, self.capacity, 1)
+        for name in self._RETURN_ARRAYS:
+            setattr(self, name, np.zeros(shape, dtype=np.int64 if name == "return_tail" else np.float32))
+        self.has_returns = True
 
     def add(
         self,
@@ -69,10 +89,39 @@ class TaskReplayBuffer:
         self.next_observations[task, p] = next_obs
         self.dones[task, p, 0] = float(terminated)
         self.prior_z[task, p, 0] = float(prior_z)
+        if self.has_returns:
+            self.return_ready[task, p, 0] = 0.0  # a new row: its return is not known until its trajectory piece ends
         self.pos[task] = (p + 1) % self.capacity
         self.size[task] = min(self.size[task] + 1, self.capacity)
 
+    def write_returns(
+        self,
+        task: int,
+        rows: np.ndarray,
+        reward_sum: np.ndarray,
+        log_prob_sum: np.ndarray,
+        discount: np.ndarray,
+        tail: np.ndarray,
+    ) -> None:
+        """
+        Store the returns of rows of ``task`` (:class:`~sb3_pearl.common.type_aliases.ReturnTargets`), each array (K,):
+        ``tail`` holds the buffer row whose ``next_observations`` start the bootstrapped tail.
+        """
+        self.enable_returns()
+        for name, values in (
+            ("return_reward", reward_sum),
+            ("return_log_prob", log_prob_sum),
+            ("return_discount", discount),
+            ("return_tail", tail),
+        ):
+            getattr(self, name)[task, rows, 0] = values
+        self.return_ready[task, rows, 0] = 1.0
+
     _ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "prior_z")
+    _RETURN_ARRAYS = ("return_reward", "return_log_prob", "return_discount", "return_tail", "return_ready")
+
+    def _saved_arrays(self) -> tuple[str, ...]:
+        return self._ARRAYS + (self._RETURN_ARRAYS if self.has_returns else ())
 
     def _rows_in_use(self, used: int) -> np.ndarray:
         """Mask of shape ``(n_tasks, used)``: True on the rows a task holds (``row < size[task]``)."""
@@ -87,7 +136,7 @@ class TaskReplayBuffer:
         state = self.__dict__.copy()
         used = int(self.size.max()) if self.size.size else 0
         held = self._rows_in_use(used)
-        for name in self._ARRAYS:
+        for name in self._saved_arrays():
             state[name] = getattr(self, name)[:, :used][held]  # (size.sum(), dim): task 0's rows, then task 1's, ...
         state["layout"] = "rows-in-use"
         return state
@@ -96,10 +145,11 @@ class TaskReplayBuffer:
         layout = state.pop("layout", "padded")  # "padded": earlier pickles, arrays (n_tasks, largest size, dim)
         if "prior_z" not in state:  # a buffer saved before the flag existed: its z sources are unknown (none marked)
             state["prior_z"] = np.zeros_like(state["rewards"])
+        state.setdefault("has_returns", False)  # saved before the return arrays existed
         self.__dict__.update(state)  # every attribute in its saved place (a re-pickle writes the same bytes)
         used = int(self.size.max()) if self.size.size else 0
         held = self._rows_in_use(used)
-        for name in self._ARRAYS:
+        for name in self._saved_arrays():
             stored = state[name]
             if layout == "rows-in-use":  # (size.sum(), dim)
                 full = np.zeros((self.n_tasks, self.capacity, *stored.shape[1:]), stored.dtype)
@@ -121,20 +171,38 @@ class TaskReplayBuffer:
             raise ValueError(f"cannot sample tasks without data: {tasks[sizes == 0].tolist()}")
         return (np.random.random_sample((len(tasks), batch_size)) * sizes[:, None]).astype(np.int64)
 
-    def sample(self, tasks: np.ndarray, batch_size: int, device: th.device | str = "cpu") -> MetaReplaySamples:
+    def sample(
+        self, tasks: np.ndarray, batch_size: int, device: th.device | str = "cpu", returns: bool = False
+    ) -> MetaReplaySamples:
         """
         Sample ``batch_size`` transitions uniformly from each task in ``tasks``.
 
         :param tasks: task indices, shape ``(T,)`` (repeats allowed)
         :param batch_size: rows per task
         :param device: torch device of the returned tensors
+        :param returns: also return the rows' Monte-Carlo returns (:meth:`write_returns`; none known: ready is 0)
         :return: tensors of leading shape ``(T, batch_size)``
         """
         tasks = np.asarray(tasks, dtype=np.int64)
         rows = self.sample_indices(tasks, batch_size)
         t = tasks[:, None]  # (T, 1) broadcast against rows (T, B)
         arrays = (self.observations, self.actions, self.rewards, self.next_observations, self.dones, self.prior_z)
-        return MetaReplaySamples(*(th.as_tensor(a[t, rows], device=device) for a in arrays))
+        observations, actions, rewards, next_observations, dones, prior_z = (
+            th.as_tensor(a[t, rows], device=device) for a in arrays
+        )
+        samples = MetaReplaySamples(observations, actions, rewards, next_observations, dones, prior_z)
+        if not returns:
+            return samples
+        self.enable_returns()
+        tail_rows = self.return_tail[t, rows, 0]  # (T, B) buffer rows of each sampled row's tail
+        parts = (
+            self.return_reward[t, rows],
+            self.return_log_prob[t, rows],
+            self.return_discount[t, rows],
+            self.next_observations[t, tail_rows],  # (T, B, obs_dim)
+            self.return_ready[t, rows],
+        )
+        return samples._replace(returns=ReturnTargets(*(th.as_tensor(a, device=device) for a in parts)))
 
 
 class MetaReplayBuffer:

@@ -85,6 +85,11 @@ class SquashedGaussianActor(nn.Module):
         mean, log_std = self._params(x)
         return self.action_dist.log_prob_from_params(mean, log_std)
 
+    def log_prob(self, x: th.Tensor, actions: th.Tensor) -> th.Tensor:
+        """log pi(a | x) of given actions in [-1, 1] (N, A) -> (N,) (tanh inverted, clipped off +-1 as SB3 does)."""
+        mean, log_std = self._params(x)
+        return self.action_dist.proba_distribution(mean, log_std).log_prob(actions)
+
     def forward(self, x: th.Tensor, deterministic: bool = False) -> th.Tensor:
         mean, log_std = self._params(x)
         return self.action_dist.actions_from_params(mean, log_std, deterministic=deterministic)

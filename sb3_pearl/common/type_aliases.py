@@ -7,6 +7,21 @@ from typing import NamedTuple
 import torch as th
 
 
+class ReturnTargets(NamedTuple):
+    """
+    Discounted returns of the transitions collected with z from the prior, from each row to the end of its trajectory
+    piece (n-step: at most n rows), for a prior critic fitted to Monte-Carlo targets (``prior_target="mc"``). The
+    target of row t whose piece ends k rows later is ``reward_scale * reward_sum - ent_coef * log_prob_sum +
+    discount * V~(tail_observations, z0)``. Every tensor has leading shape ``(T, B)``.
+    """
+
+    reward_sum: th.Tensor  # (T, B, 1) sum_{i<k} gamma^i r_{t+i} (unscaled rewards)
+    log_prob_sum: th.Tensor  # (T, B, 1) sum_{1<=i<k} gamma^i log pi(a_{t+i} | s_{t+i}, z) of the behaviour policy
+    discount: th.Tensor  # (T, B, 1) gamma^k, 0 when the piece ends in a true termination
+    tail_observations: th.Tensor  # (T, B, obs_dim) s_{t+k}, where the bootstrapped tail starts
+    ready: th.Tensor  # (T, B, 1) 1.0 where the row's return is known (a prior-z row whose piece has ended)
+
+
 class MetaReplaySamples(NamedTuple):
     """A replay batch for ``T`` tasks with ``B`` rows each (every tensor has leading shape ``(T, B)``)."""
 
@@ -16,6 +31,7 @@ class MetaReplaySamples(NamedTuple):
     next_observations: th.Tensor  # (T, B, obs_dim)
     dones: th.Tensor  # (T, B, 1) 1.0 on termination only (a time-limit truncation stores 0.0)
     prior_z: th.Tensor | None = None  # (T, B, 1) 1.0 where the transition was collected with z from the prior
+    returns: ReturnTargets | None = None  # the prior-z rows' Monte-Carlo returns (sample(..., returns=True))
 
 
 class PEARLLosses(NamedTuple):

@@ -23,6 +23,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.divergence import check_env_step, check_finite_actions
 from sb3_pearl.evaluation.progress import TrainingPlan
+from sb3_pearl.pearl.returns import PendingPiece, finish_open_pieces, record_row, start_piece
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL
@@ -96,6 +97,8 @@ class OpenIteration:
     z: np.ndarray  # (n_envs, latent_dim) each env's z for its current trajectory
     collected: int = 0
     planned: int = 0
+    # per env: the prior-z trajectory piece whose rows await their Monte-Carlo returns (prior_target="mc"), or None
+    pieces: list[PendingPiece | None] | None = None
 
     @property
     def finished(self) -> bool:
@@ -120,7 +123,11 @@ def requeue_open_segments(state: OpenIteration, n_envs: int) -> None:
     Put each env's unfinished segment (its remaining steps) and the rest of its visit back at the head of the queue,
     for ``n_envs`` envs: the envs were reset (or their number changed), so these segments start on a fresh episode.
     The counts are kept: the iteration still collects what it planned.
+    Open trajectory pieces (``prior_target="mc"``) must have been cut first
+    (:func:`~sb3_pearl.pearl.returns.finish_open_pieces`).
     """
+    if any(piece is not None for piece in state.pieces or ()):
+        raise RuntimeError("cut the open trajectory pieces (finish_open_pieces) before requeueing their segments")
     visits: list[deque[Segment]] = []
     for slot in range(len(state.remaining)):
         visit = deque(state.running[slot])
@@ -149,6 +156,7 @@ def collect_iteration(model: PEARL, env: VecEnv, callback: BaseCallback, state: 
     n_envs = env.num_envs
     obs = np.array(model._last_obs, dtype=np.float32)  # type: ignore[arg-type]
     z = th.as_tensor(state.z, device=model.device)
+    returns = model.prior_target == "mc"  # the prior-z rows get Monte-Carlo returns (sb3_pearl.pearl.returns)
     continue_training = True
     while True:
         for slot in range(n_envs):
@@ -163,6 +171,8 @@ def collect_iteration(model: PEARL, env: VecEnv, callback: BaseCallback, state: 
                     state.segments[slot] = segment
                     state.remaining[slot] = segment.n_steps
                     z[slot] = draw_z(model, segment)
+                    if returns and segment.z_source == "prior":
+                        start_piece(model, state, slot, segment.task, z[slot])
         active = np.flatnonzero(state.remaining > 0)
         if len(active) == 0 or model.num_timesteps >= model._total_timesteps:
             break
@@ -181,14 +191,21 @@ def collect_iteration(model: PEARL, env: VecEnv, callback: BaseCallback, state: 
             next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]  # type: ignore[call-overload,index]
             terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
             transition = (current.task, obs[slot], actions[slot].reshape(-1), rewards[slot], next_obs, terminated)
+            row = int(model.replay_buffer.rl.pos[current.task])
             model.replay_buffer.rl.add(*transition, prior_z=current.z_source == "prior")
             if current.add_to_context:
                 model.replay_buffer.context.add(*transition)
             state.remaining[slot] -= 1
+            if returns:
+                record_row(model, state, slot, row, bool(dones[slot]), terminated)
+                if state.remaining[slot] == 0:  # the segment ends inside the trajectory: the next one resets the env
+                    finish_open_pieces(model, state, [slot])
             if dones[slot]:
                 model._episode_num += 1
                 if state.remaining[slot] > 0:
                     z[slot] = draw_z(model, current)  # z is drawn once per trajectory
+                    if returns and current.z_source == "prior":
+                        start_piece(model, state, slot, current.task, z[slot])
         state.collected += len(active)
         model.num_timesteps += len(active)
         obs = np.array(new_obs, dtype=np.float32)

@@ -8,7 +8,8 @@ every optimizer its own gradient:
 - the prior critic's soft Bellman loss under z0 reaches the prior critic only (with ``prior_data="prior"``, on the
   rows collected with z from the prior only, as is the actor's prior term), and so does its conservative penalty
   (``prior_conservative_weight``: the z0 policy's actions enter it detached); its target is computed without
-  gradients, from the prior critic's target network or (``prior_target="main"``) the critic's;
+  gradients, from the prior critic's target network or (``prior_target="main"``) the critic's, or is the Monte-Carlo
+  return of the prior-z rows with a bootstrapped tail (``prior_target="mc"``: it is then fitted on those rows only);
 - the actor terms L(b, z.detach()) and, for PEARL+, L(b, z0) read the critics through frozen
   parameters and reach the actor only.
 
@@ -45,7 +46,7 @@ class LossSettings(NamedTuple):
     reward_scale: float  # rewards are multiplied by it in the critic targets
     prior_term: bool  # the actor is also trained on z0 (PEARL+ with prior_coef > 0)
     prior_data: str  # the replay rows the prior terms use: "all" or "prior" (collected with z from the prior)
-    prior_target: str  # what the prior critic bootstraps from: "prior" (its own target network) or "main"
+    prior_target: str  # the prior critic's target: "prior" (its own target network), "main" (the critic's) or "mc"
     prior_conservative_weight: float  # weight of the prior critic's conservative (CQL) penalty; 0: off
     target_entropy: float  # target of a learned entropy coefficient
 
@@ -95,10 +96,22 @@ def compute_losses(
     pe_all = evaluate_policy(policy.actor, th.cat([x_post, x_prior]) if use_prior else x_post)
     pe_post, pe_prior = pe_all.split(rows)
 
+    # The prior critic's target: one step (the paper) or, with prior_target="mc", the prior-z rows' Monte-Carlo
+    # returns, each bootstrapped from the state its window ends in (sb3_pearl.pearl.returns).
+    if settings.prior_target == "mc":
+        if replay.returns is None:
+            raise ValueError("prior_target='mc' needs replay batches with returns (TaskReplayBuffer.sample(returns=True))")
+        boot_obs = replay.returns.tail_observations.reshape(rows, -1)  # (T*B, obs_dim) s_{t+k}
+        returned = settings.reward_scale * replay.returns.reward_sum.reshape(rows, 1)
+        returned = returned - ent_coef * replay.returns.log_prob_sum.reshape(rows, 1)  # (T*B, 1)
+        boot_discount = replay.returns.discount.reshape(rows, 1)  # gamma^k, 0 after a termination
+    else:
+        boot_obs, returned, boot_discount = next_obs, rewards, not_done * settings.gamma
+
     # Soft Bellman targets with z detached (posterior) and z0 (prior critic): one actor forward.
     with th.no_grad():
         x_next = th.cat([next_obs, z_rows.detach()], dim=-1)
-        x0_next = th.cat([next_obs, z0_rows], dim=-1)
+        x0_next = th.cat([boot_obs, z0_rows], dim=-1)
         next_pe_all = evaluate_policy(policy.actor, th.cat([x_next, x0_next]) if policy.prior_critic is not None else x_next)
         next_pe, next_pe0 = next_pe_all.split(rows)
         v_next = soft_value(q_of_policy(policy.critic_target, x_next, next_pe), next_pe, ent_coef)
@@ -116,7 +129,8 @@ def compute_losses(
         prior_rows = replay.prior_z.reshape(rows, 1)  # (T*B, 1) 0/1
 
     # Prior critic Q~(s, a, z0) (Q~(s, a) with prior_critic_input="state"): its own soft Bellman loss under z0,
-    # bootstrapped from its own target network (the paper) or from the critic's target at z0 (prior_target="main").
+    # bootstrapped from its own target network (the paper) or from the critic's target at z0 (prior_target="main"),
+    # or fitted to the Monte-Carlo returns of the prior-z rows whose return is known (prior_target="mc").
     prior_critic_loss = th.zeros((), device=device)
     if policy.prior_critic is not None:
         assert policy.prior_critic_target is not None
@@ -125,15 +139,19 @@ def compute_losses(
             if settings.prior_target == "main":
                 q0_next = q_of_policy(policy.critic_target, x0_next, next_pe0)
             else:
-                q0_next = q_of_policy(policy.prior_critic_target, prior_features(next_obs, z0_rows), next_pe0)
-            target0 = rewards + not_done * settings.gamma * soft_value(q0_next, next_pe0, ent_coef)  # (T*B, 1)
+                q0_next = q_of_policy(policy.prior_critic_target, prior_features(boot_obs, z0_rows), next_pe0)
+            target0 = returned + boot_discount * soft_value(q0_next, next_pe0, ent_coef)  # (T*B, 1)
         x0_critic = prior_features(obs, z0_rows)
         q0 = q_of_actions(policy.prior_critic, x0_critic, actions, discrete)  # (n_prior_critics, T*B, 1)
-        prior_critic_loss = critic_regression_loss(q0, target0, weights=prior_rows)
+        fitted_rows = prior_rows
+        if settings.prior_target == "mc":
+            assert replay.returns is not None
+            fitted_rows = replay.returns.ready.reshape(rows, 1)  # (T*B, 1) 0/1: only prior-z rows have a return
+        prior_critic_loss = critic_regression_loss(q0, target0, weights=fitted_rows)
         if settings.prior_conservative_weight > 0:
             # Conservative penalty (CQL): push Q~ down at the z0 policy's actions, up at the stored ones.
             gap = conservative_gap(policy.prior_critic, x0_critic, pe_prior, q0)  # (n_prior_critics, T*B, 1)
-            weights = None if prior_rows is None else prior_rows.unsqueeze(0)
+            weights = None if fitted_rows is None else fitted_rows.unsqueeze(0)
             penalty = gap.mean(dim=(1, 2)) if weights is None else masked_mean(gap, weights, dims=(1, 2))
             prior_critic_loss = prior_critic_loss + settings.prior_conservative_weight * penalty.sum()
 

@@ -43,6 +43,7 @@ from sb3_pearl.pearl.collection import (
 from sb3_pearl.pearl.diagnostics import record_gradient_conflict
 from sb3_pearl.pearl.losses import LossSettings, compute_losses
 from sb3_pearl.pearl.policies import PEARLPolicy
+from sb3_pearl.pearl.returns import finish_open_pieces
 
 SelfPEARL = TypeVar("SelfPEARL", bound="PEARL")
 
@@ -131,6 +132,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
     # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before _setup_model).
     prior_coef, prior_critic_mode, prior_data = 0.0, "none", "all"
     prior_target, prior_conservative_weight = "prior", 0.0  # the prior-critic designs (PEARLPlus, docs/pearl.md)
+    prior_return_steps = 0  # n of the prior critic's n-step returns with prior_target="mc" (0: Monte-Carlo)
     # Called after every gradient step of train() while set (the progress callback sets it during learn()); never saved.
     gradient_step_callback: Callable[[], None] | None = None
 
@@ -390,7 +392,9 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         if len(candidates) == 0:
             raise RuntimeError("no training task holds data yet: collect before training")
         tasks = np.random.choice(candidates, size=self.meta_batch, replace=len(candidates) < self.meta_batch)
-        replay = self.replay_buffer.rl.sample(tasks, batch_size or self.batch_size, self.device)
+        replay = self.replay_buffer.rl.sample(
+            tasks, batch_size or self.batch_size, self.device, returns=self.prior_target == "mc"
+        )
         context = self._sample_context(tasks)
         z0 = th.randn(len(tasks), self.latent_dim, device=self.device)  # one prior z per task
         return replay, context, z0
@@ -487,6 +491,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             if not state.finished and (self.partial_iteration == "carry" or not continue_training):
                 self._open_iteration = state  # finished by the next learn(); nothing trained on it yet
                 break
+            finish_open_pieces(self, state)  # trained now: a trajectory the budget ended inside is cut here
             self._open_iteration = None
             if not continue_training:
                 break
@@ -509,6 +514,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
         if self._open_iteration is not None and (reset_num_timesteps or self._last_obs is None):
+            finish_open_pieces(self, self._open_iteration)  # the envs are reset: their trajectories are cut
             requeue_open_segments(self._open_iteration, self.n_envs)  # the envs are reset: their segments start anew
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 

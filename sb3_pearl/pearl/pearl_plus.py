@@ -13,7 +13,7 @@ from sb3_pearl.pearl.policies import PRIOR_CRITIC_INPUTS, PRIOR_CRITIC_MODES, PE
 SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
 
 PRIOR_DATA_MODES = ("all", "prior")
-PRIOR_TARGETS = ("prior", "main")
+PRIOR_TARGETS = ("prior", "main", "mc")
 
 
 class PEARLPlus(PEARL):
@@ -44,7 +44,12 @@ class PEARLPlus(PEARL):
         (not in the paper, off by default; z0 ~ N(0, I) carries no task information, docs/pearl.md)
     :param prior_target: what the prior critic bootstraps from: ``"prior"``, its own target network (the paper's
         separate Q-network), or ``"main"``, the critic's target network at z0, ``r + gamma * V(s', z0)`` with
-        ``V = Q_target(s', a', z0) - alpha log pi(a' | s', z0)`` (not in the paper, off by default; docs/pearl.md)
+        ``V = Q_target(s', a', z0) - alpha log pi(a' | s', z0)``, or ``"mc"``: fitted to the Monte-Carlo soft returns
+        of the trajectories collected with z from the prior (on those rows only), each bootstrapped from its own target
+        network where the trajectory was cut (:mod:`sb3_pearl.pearl.returns`). ``"main"`` and ``"mc"`` are not in the
+        paper and off by default (docs/pearl.md)
+    :param prior_return_steps: with ``prior_target="mc"``, n of n-step returns (the tail is bootstrapped after at most
+        n rewards); 0 (default): each return runs to the end of its trajectory
     :param prior_conservative_weight: weight of a conservative (CQL) penalty on the prior critic: Q~ at the z0
         policy's actions minus Q~ at the stored actions (0: off, the paper; docs/pearl.md)
     :param _init_setup_model: build the networks at construction
@@ -52,8 +57,8 @@ class PEARLPlus(PEARL):
         ``n_train_tasks``, ``meta_batch``, ``policy_kwargs``, ``seed``, ...), passed by name, with its defaults
 
     The prior-critic designs compared in docs/pearl.md ("Prior-critic designs") combine ``prior_n_critics`` (2: twin
-    minimum; 5: a pessimistic ensemble), ``prior_data``, ``prior_critic_input``, ``prior_target`` and
-    ``prior_conservative_weight``; every default is the paper's form.
+    minimum; 5: a pessimistic ensemble), ``prior_data``, ``prior_critic_input``, ``prior_target`` (with
+    ``prior_return_steps``) and ``prior_conservative_weight``; every default is the paper's form.
     """
 
     def __init__(
@@ -69,6 +74,7 @@ class PEARLPlus(PEARL):
         prior_critic_input: str = "state_z0",
         prior_target: str = "prior",
         prior_conservative_weight: float = 0.0,
+        prior_return_steps: int = 0,
         _init_setup_model: bool = True,
         **kwargs: Any,
     ):
@@ -94,6 +100,12 @@ class PEARLPlus(PEARL):
                 "network, as in the paper, or the critic's target network at z0)"
             )
         check_real("prior_conservative_weight", prior_conservative_weight, 0.0, hint="0 turns the CQL penalty off")
+        check_int("prior_return_steps", prior_return_steps, 0, hint="n-step returns with prior_target='mc'; 0: to the end")
+        if prior_return_steps > 0 and prior_target != "mc":
+            raise ValueError(
+                f"prior_return_steps={prior_return_steps} sets the horizon of Monte-Carlo targets: use it with "
+                f"prior_target='mc' (got prior_target={prior_target!r})"
+            )
         if prior_critic == "shared" and (
             prior_critic_input != "state_z0" or prior_target != "prior" or prior_conservative_weight > 0
         ):
@@ -107,6 +119,7 @@ class PEARLPlus(PEARL):
         self.prior_data = prior_data
         self.prior_target = prior_target
         self.prior_conservative_weight = float(prior_conservative_weight)
+        self.prior_return_steps = prior_return_steps
         self.policy_kwargs.update(
             # The one switch: a prior critic is built only when the prior term uses it.
             prior_critic=self.prior_critic_mode if self.uses_prior_term else "none",

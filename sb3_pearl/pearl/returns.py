@@ -1,0 +1,139 @@
+"""Monte-Carlo (or n-step) returns of the trajectories collected with z from the prior (``prior_target="mc"``).
+
+A prior critic bootstrapped from itself (the paper's form) drifts far above the z0 policy's value on every family we
+trained (docs/results.md, "The prior critic"). With ``prior_target="mc"`` it is fitted instead to the discounted
+return the z0 policy actually collected: for row t of a trajectory piece that ends K rows later, with
+``k = min(n, K - t)`` (``n = prior_return_steps``, 0: the whole piece),
+
+    G_t = reward_scale * sum_{i<k} gamma^i r_{t+i} - ent_coef * sum_{1<=i<k} gamma^i log pi_b(a_{t+i} | s_{t+i}, z)
+          + gamma^k * V~(s_{t+k}, z0)        (the tail: 0 when the piece ended in a true termination)
+
+the soft return of the calibration measure (:mod:`sb3_pearl.pearl.diagnostics.calibration`), with the entropy bonus
+from t + 1 on as in the soft Bellman target. A piece ends when its trajectory ends (termination or time limit), when
+the collection segment ends (the next segment resets the env) or when the iteration is trained while an env is inside
+one: only the last two are *cuts*, bootstrapped like a time limit. The reward and log-probability sums are stored
+unscaled and apart, so that the target uses the reward scale and entropy coefficient of the step that reads it.
+
+``pi_b`` is the policy that collected the piece: the actor does not change while an iteration is collected, so its
+log-probabilities are computed when the piece ends, from the stored actions (no extra random draws: a model without
+Monte-Carlo targets collects bit-identical data).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+import torch as th
+
+from sb3_pearl.common.soft_actor_critic import log_prob_of_actions
+
+if TYPE_CHECKING:
+    from sb3_pearl.pearl.collection import OpenIteration
+    from sb3_pearl.pearl.pearl import PEARL
+
+
+class PieceReturns(NamedTuple):
+    """The returns of every row of one trajectory piece of K rows, each array (K,)."""
+
+    reward_sum: np.ndarray  # sum_{i<k} gamma^i r_{t+i}
+    log_prob_sum: np.ndarray  # sum_{1<=i<k} gamma^i log pi_b(a_{t+i})
+    discount: np.ndarray  # gamma^k, 0 when the row's window reaches a true termination
+    tail: np.ndarray  # index (in the piece) of the last row of the window: its next observation starts the tail
+
+
+def piece_returns(rewards: np.ndarray, log_probs: np.ndarray, gamma: float, terminated: bool, horizon: int) -> PieceReturns:
+    """
+    The discounted sums of every row of a trajectory piece, each row's window ``k = min(horizon, K - t)`` rows long.
+
+    :param rewards: (K,) rewards of the piece, in order
+    :param log_probs: (K,) log-probabilities of its actions under the policy that collected it
+    :param gamma: discount factor
+    :param terminated: the piece ends in a true termination (no tail after its last row)
+    :param horizon: n of the n-step return; 0: every window reaches the end of the piece (Monte-Carlo)
+    :return: the sums, each (K,)
+    """
+    if rewards.ndim != 1 or log_probs.shape != rewards.shape:
+        raise ValueError(f"expected rewards and log_probs of shape (K,), got {rewards.shape} and {log_probs.shape}")
+    n_rows = len(rewards)
+    rows = np.arange(n_rows)
+    end = np.minimum(rows + horizon, n_rows) if horizon > 0 else np.full(n_rows, n_rows)  # (K,) one past each window
+    k = end - rows
+    # Suffix sums S_t = sum_{i>=0} gamma^i x_{t+i} (S_K = 0) give every window:
+    # sum_{i<k} gamma^i x_{t+i} = S_t - gamma^k S_end.
+    powers = gamma ** k.astype(np.float64)
+
+    def suffix(x: np.ndarray) -> np.ndarray:
+        sums = np.zeros(n_rows + 1)
+        for t in range(n_rows - 1, -1, -1):
+            sums[t] = x[t] + gamma * sums[t + 1]
+        return sums
+
+    reward_suffix, log_prob_suffix = suffix(rewards.astype(np.float64)), suffix(log_probs.astype(np.float64))
+    reward_sum = reward_suffix[rows] - powers * reward_suffix[end]
+    # The entropy window starts one row later: sum_{1<=i<k} gamma^i lp_{t+i} = gamma * (S_{t+1} - gamma^(k-1) S_end).
+    log_prob_sum = gamma * (log_prob_suffix[rows + 1] - gamma ** (k - 1.0) * log_prob_suffix[end])
+    discount = np.where((end == n_rows) & terminated, 0.0, powers)
+    return PieceReturns(reward_sum, log_prob_sum, discount, end - 1)
+
+
+@dataclass
+class PendingPiece:
+    """A trajectory piece being collected with z from the prior: its task, the buffer rows it filled and its z."""
+
+    task: int
+    z: np.ndarray  # (latent_dim,)
+    rows: list[int] = field(default_factory=list)
+
+
+def start_piece(model: PEARL, state: OpenIteration, slot: int, task: int, z: th.Tensor) -> None:
+    """Env ``slot`` starts a trajectory with z from the prior on ``task``: its rows will get Monte-Carlo returns."""
+    if state.pieces is None:
+        state.pieces = [None] * len(state.remaining)
+    state.pieces[slot] = PendingPiece(task, z.detach().cpu().numpy().copy())
+
+
+def record_row(model: PEARL, state: OpenIteration, slot: int, row: int, done: bool, terminated: bool) -> None:
+    """
+    Env ``slot`` stored buffer ``row`` in its piece; the piece ends with its trajectory (``done``), or as a cut when it
+    fills the buffer's capacity (older rows of the piece would be overwritten) and then goes on as a new piece.
+    """
+    piece = state.pieces[slot] if state.pieces is not None else None
+    if piece is None:
+        return
+    piece.rows.append(row)
+    if done:
+        finish_piece(model, piece, terminated)
+        state.pieces[slot] = None  # type: ignore[index]
+    elif len(piece.rows) == model.replay_buffer.rl.capacity:
+        finish_piece(model, piece, terminated=False)
+        state.pieces[slot] = PendingPiece(piece.task, piece.z)  # type: ignore[index]
+
+
+def finish_open_pieces(model: PEARL, state: OpenIteration, slots: list[int] | None = None) -> None:
+    """
+    Cut the pieces still open on ``slots`` (None: every env): a segment or the collection ended inside a trajectory,
+    so their tails are bootstrapped.
+    """
+    for slot, piece in enumerate(state.pieces or ()):
+        if piece is not None and (slots is None or slot in slots):
+            finish_piece(model, piece, terminated=False)
+            state.pieces[slot] = None  # type: ignore[index]
+
+
+def finish_piece(model: PEARL, piece: PendingPiece, terminated: bool) -> None:
+    """The returns of the piece's rows, into the RL buffer (:meth:`TaskReplayBuffer.write_returns`)."""
+    if not piece.rows:
+        return
+    buffer = model.replay_buffer.rl
+    rows = np.asarray(piece.rows, dtype=np.int64)
+    observations = th.as_tensor(buffer.observations[piece.task, rows], device=model.device)  # (K, obs_dim)
+    actions = th.as_tensor(buffer.actions[piece.task, rows], device=model.device)  # (K, act_dim)
+    z = th.as_tensor(piece.z, device=model.device).expand(len(rows), -1)  # (K, L)
+    with th.no_grad():
+        log_probs = log_prob_of_actions(model.actor, th.cat([observations, z], dim=-1), actions)  # (K, 1)
+    returns = piece_returns(
+        buffer.rewards[piece.task, rows, 0], log_probs.cpu().numpy()[:, 0], model.gamma, terminated, model.prior_return_steps
+    )
+    buffer.write_returns(piece.task, rows, returns.reward_sum, returns.log_prob_sum, returns.discount, rows[returns.tail])
