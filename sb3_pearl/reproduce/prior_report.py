@@ -14,10 +14,9 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
-import numpy as np
-
 from sb3_pearl.experiments.prior_critic import DESIGNS
 from sb3_pearl.experiments.spec import Experiment
+from sb3_pearl.reproduce.stats import mean_finite, median_finite
 
 Group = Mapping[str, Mapping[int, dict[str, Any]]]
 
@@ -76,7 +75,7 @@ def task_blind_of(result: dict[str, Any]) -> tuple[float, float]:
 def _task_blind_cell(runs: Sequence[dict[str, Any]]) -> str:
     """The medians of the task-blind reference over runs, ``rel. error / rank corr.``."""
     blind = [task_blind_of(r) for r in runs]
-    return f"{_fmt(_nanmedian([b[0] for b in blind]))} / {_fmt(_nanmedian([b[1] for b in blind]))}"
+    return f"{_fmt(median_finite([b[0] for b in blind]))} / {_fmt(median_finite([b[1] for b in blind]))}"
 
 
 def _measured(result: dict[str, Any]) -> bool:
@@ -89,16 +88,6 @@ def _bar_runs(experiment: Experiment, family: str, group: Group) -> Mapping[int,
     if bar is None or bar.kind != "variant":
         return None
     return group.get(bar.name, {})
-
-
-def _nanmean(values: Sequence[float]) -> float:
-    finite = [v for v in values if math.isfinite(v)]
-    return float(np.mean(finite)) if finite else math.nan
-
-
-def _nanmedian(values: Sequence[float]) -> float:
-    finite = [v for v in values if math.isfinite(v)]
-    return float(np.median(finite)) if finite else math.nan
 
 
 def prior_critic_table(experiment: Experiment, family: str, group: Group) -> list[str]:
@@ -125,14 +114,14 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
         train = [run_gaps(r, pairs[s], "train") for s, r in runs.items()]
         test = [run_gaps(r, pairs[s], "test") for s, r in runs.items()]
         cells = [
-            _fmt(_nanmean([c[0] for c in calibration]), 1),
-            _fmt(_nanmedian([c[1] for c in calibration])),
-            _fmt(_nanmedian([c[2] for c in calibration])),
+            _fmt(mean_finite([c[0] for c in calibration]), 1),
+            _fmt(median_finite([c[1] for c in calibration])),
+            _fmt(median_finite([c[2] for c in calibration])),
             _task_blind_cell(list(runs.values())),
-            _fmt(_nanmean([g[0] for g in train]), 1),
-            _fmt(_nanmean([g[1] for g in train]), 1, 100),
-            _fmt(_nanmean([g[0] for g in test]), 1),
-            _fmt(_nanmean([g[1] for g in test]), 1, 100),
+            _fmt(mean_finite([g[0] for g in train]), 1),
+            _fmt(mean_finite([g[1] for g in train]), 1, 100),
+            _fmt(mean_finite([g[0] for g in test]), 1),
+            _fmt(mean_finite([g[1] for g in test]), 1, 100),
         ]
         label = experiment.variant(variant).label
         lines.append(f"| {label} | {' | '.join(cells)} | {len(runs)} |")
@@ -186,10 +175,10 @@ def rank_designs(experiment: Experiment, groups: Mapping[str, Group], alpha: flo
             Ranked(
                 design,
                 variant,
-                _nanmedian([c[1] for c in calibration]),
-                _nanmedian([c[2] for c in calibration]),
-                _nanmean([g[0] for g in gaps]),
-                _nanmean([g[1] for g in gaps]),
+                median_finite([c[1] for c in calibration]),
+                median_finite([c[2] for c in calibration]),
+                mean_finite([g[0] for g in gaps]),
+                mean_finite([g[1] for g in gaps]),
                 len(runs),
                 _task_blind_cell(runs),
             )

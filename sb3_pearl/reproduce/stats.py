@@ -127,6 +127,18 @@ def t_quantile(p: float, df: float) -> float:
     return 0.5 * (low + high)
 
 
+def mean_finite(values: Sequence[float]) -> float:
+    """The mean of the finite values (nan / inf left out), nan when none is finite."""
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else math.nan
+
+
+def median_finite(values: Sequence[float]) -> float:
+    """The median of the finite values (nan / inf left out), nan when none is finite."""
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.median(finite)) if finite else math.nan
+
+
 def t_interval(values: Sequence[float] | np.ndarray, confidence: float = 0.95) -> Interval:
     """
     Student t interval of the mean of ``values`` (independent replications, e.g. one per seed).

@@ -24,6 +24,7 @@ from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.reproduce.checkpoint import RunCheckpoint
 from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_result, run_dir
 from sb3_pearl.reproduce.scheduler import plan_runs
+from sb3_pearl.reproduce.stats import mean_finite
 
 
 class RunStatus(NamedTuple):
@@ -153,17 +154,6 @@ def run_status(
             progress = f"evaluate ({', '.join(p for p in state['phases'] if not p.endswith('_s')) or 'starting'})"
         rows.append(RunStatus(key, "resumable", progress, cpu, left, partial))
     return rows
-
-
-def mean_finite(values: Sequence[float]) -> float:
-    """
-    The mean of the finite values.
-
-    :param values: the values (nan / inf are left out)
-    :return: their mean, nan when none is finite
-    """
-    finite = [v for v in values if math.isfinite(v)]
-    return sum(finite) / len(finite) if finite else math.nan
 
 
 def format_status(rows: Sequence[RunStatus]) -> str:
