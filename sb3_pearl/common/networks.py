@@ -85,11 +85,6 @@ class SquashedGaussianActor(nn.Module):
         mean, log_std = self._params(x)
         return self.action_dist.log_prob_from_params(mean, log_std)
 
-    def log_prob(self, x: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        """log pi(a | x) of given actions in [-1, 1] (N, A) -> (N,) (tanh inverted, clipped off +-1 as SB3 does)."""
-        mean, log_std = self._params(x)
-        return self.action_dist.proba_distribution(mean, log_std).log_prob(actions)
-
     def forward(self, x: th.Tensor, deterministic: bool = False) -> th.Tensor:
         mean, log_std = self._params(x)
         return self.action_dist.actions_from_params(mean, log_std, deterministic=deterministic)
@@ -113,6 +108,12 @@ class CategoricalActor(nn.Module):
         """Action probabilities and log-probabilities, each (N, n_actions)."""
         log_probs = F.log_softmax(mlp_with_fp32_head(self.logits, x), dim=-1)
         return log_probs.exp(), log_probs
+
+    def action_log_prob(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Sampled action indices (N,) and their log-probabilities (N,), from the same draws as ``forward``."""
+        distribution = th.distributions.Categorical(logits=mlp_with_fp32_head(self.logits, x), validate_args=False)
+        actions = distribution.sample()
+        return actions, distribution.log_prob(actions)
 
     def forward(self, x: th.Tensor, deterministic: bool = False) -> th.Tensor:
         logits = mlp_with_fp32_head(self.logits, x)

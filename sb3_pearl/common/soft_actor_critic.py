@@ -50,14 +50,6 @@ def evaluate_policy(actor: nn.Module, x: th.Tensor) -> PolicyEval:
     return PolicyEval(actions, None, log_prob.reshape(-1, 1))
 
 
-def log_prob_of_actions(actor: nn.Module, x: th.Tensor, actions: th.Tensor) -> th.Tensor:
-    """log pi(a | x) of stored actions (Box: (N, A) scaled; Discrete: (N, 1) indices) -> (N, 1)."""
-    if hasattr(actor, "probs"):
-        _, log_probs = actor.probs(x)  # type: ignore[operator]
-        return log_probs.gather(-1, actions.long().reshape(-1, 1))
-    return actor.log_prob(x, actions).reshape(-1, 1)  # type: ignore[operator]
-
-
 def q_of_policy(critic_fn: CriticFn, x: th.Tensor, pe: PolicyEval) -> th.Tensor:
     """Min over critics of Q at the policy's actions: Box (N, 1), Discrete (N, n_actions)."""
     q_input = x if pe.actions is None else th.cat([x, pe.actions], dim=-1)

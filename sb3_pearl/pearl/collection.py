@@ -23,7 +23,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.divergence import check_env_step, check_finite_actions
 from sb3_pearl.evaluation.progress import TrainingPlan
-from sb3_pearl.pearl.returns import PendingPiece, finish_open_pieces, record_row, start_piece
+from sb3_pearl.pearl.returns import PendingPiece, cut_before_overwrite, finish_open_pieces, record_row, start_piece
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL
@@ -128,6 +128,7 @@ def requeue_open_segments(state: OpenIteration, n_envs: int) -> None:
     """
     if any(piece is not None for piece in state.pieces or ()):
         raise RuntimeError("cut the open trajectory pieces (finish_open_pieces) before requeueing their segments")
+    state.pieces = None  # one slot per env: the number of envs may change
     visits: list[deque[Segment]] = []
     for slot in range(len(state.remaining)):
         visit = deque(state.running[slot])
@@ -172,13 +173,18 @@ def collect_iteration(model: PEARL, env: VecEnv, callback: BaseCallback, state: 
                     state.remaining[slot] = segment.n_steps
                     z[slot] = draw_z(model, segment)
                     if returns and segment.z_source == "prior":
-                        start_piece(model, state, slot, segment.task, z[slot])
+                        start_piece(state, slot, segment.task)
         active = np.flatnonzero(state.remaining > 0)
         if len(active) == 0 or model.num_timesteps >= model._total_timesteps:
             break
 
         with th.no_grad():
-            actions = model.policy.act(th.as_tensor(obs, device=model.device), z).cpu().numpy()
+            if returns:  # the same draws as act(), with the log-probabilities the returns need
+                actions_t, log_probs_t = model.policy.act_with_log_prob(th.as_tensor(obs, device=model.device), z)
+                log_probs = log_probs_t.cpu().numpy().astype(np.float64)  # (n_envs,)
+            else:
+                actions_t = model.policy.act(th.as_tensor(obs, device=model.device), z)
+            actions = actions_t.cpu().numpy()
         check_finite_actions(actions, model.num_timesteps, type(model).__name__)
         env_actions = actions if model.policy.discrete else model.policy.unscale_action(actions)
         new_obs, rewards, dones, infos = env.step(env_actions)
@@ -192,12 +198,14 @@ def collect_iteration(model: PEARL, env: VecEnv, callback: BaseCallback, state: 
             terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
             transition = (current.task, obs[slot], actions[slot].reshape(-1), rewards[slot], next_obs, terminated)
             row = int(model.replay_buffer.rl.pos[current.task])
+            if returns:
+                cut_before_overwrite(model, state, current.task, row)
             model.replay_buffer.rl.add(*transition, prior_z=current.z_source == "prior")
             if current.add_to_context:
                 model.replay_buffer.context.add(*transition)
             state.remaining[slot] -= 1
             if returns:
-                record_row(model, state, slot, row, bool(dones[slot]), terminated)
+                record_row(model, state, slot, row, float(log_probs[slot]), bool(dones[slot]), terminated)
                 if state.remaining[slot] == 0:  # the segment ends inside the trajectory: the next one resets the env
                     finish_open_pieces(model, state, [slot])
             if dones[slot]:
@@ -205,7 +213,7 @@ def collect_iteration(model: PEARL, env: VecEnv, callback: BaseCallback, state: 
                 if state.remaining[slot] > 0:
                     z[slot] = draw_z(model, current)  # z is drawn once per trajectory
                     if returns and current.z_source == "prior":
-                        start_piece(model, state, slot, current.task, z[slot])
+                        start_piece(state, slot, current.task)
         state.collected += len(active)
         model.num_timesteps += len(active)
         obs = np.array(new_obs, dtype=np.float32)

@@ -232,6 +232,15 @@ class PEARLPolicy(BasePolicy):
             z = z.expand(observations.shape[0], -1)
         return self.actor(th.cat([observations, z], dim=-1), deterministic=deterministic)
 
+    def act_with_log_prob(self, observations: th.Tensor, z: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        Sampled actions as :meth:`act` draws them (the same random draws) and their log-probabilities (N,), computed
+        from the draw itself: exact for a saturated Box action, whose tanh cannot be inverted.
+        """
+        if z.dim() == 1:
+            z = z.expand(observations.shape[0], -1)
+        return self.actor.action_log_prob(th.cat([observations, z], dim=-1))
+
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic=deterministic)
 

@@ -14,9 +14,17 @@ the collection segment ends (the next segment resets the env) or when the iterat
 one: only the last two are *cuts*, bootstrapped like a time limit. The reward and log-probability sums are stored
 unscaled and apart, so that the target uses the reward scale and entropy coefficient of the step that reads it.
 
-``pi_b`` is the policy that collected the piece: the actor does not change while an iteration is collected, so its
-log-probabilities are computed when the piece ends, from the stored actions (no extra random draws: a model without
-Monte-Carlo targets collects bit-identical data).
+``pi_b`` is the policy that collected the piece: its log-probabilities are recorded as the actions are drawn
+(:meth:`~sb3_pearl.pearl.policies.PEARLPolicy.act_with_log_prob`, the same random draws as ``act``: a model without
+Monte-Carlo targets collects bit-identical data). They are not recomputed from the stored actions: a saturated Box
+action (tanh = +-1 in float32) cannot be inverted to the Gaussian sample that produced it.
+
+The buffer is a ring per task: before a row is overwritten, the open piece holding it (its oldest row: a piece longer
+than the capacity, or two envs on one task) is cut there (:func:`cut_before_overwrite`), so that no return is written
+on a row that holds another transition.
+
+The replay buffer keeps 100k rows per task, so the returns it holds are those of many past z0 policies: the prior
+critic fits a mixture of their values, which lags the current z0 policy (docs/pearl.md, "mc").
 """
 
 from __future__ import annotations
@@ -25,9 +33,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import torch as th
-
-from sb3_pearl.common.soft_actor_critic import log_prob_of_actions
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.collection import OpenIteration
@@ -80,35 +85,43 @@ def piece_returns(rewards: np.ndarray, log_probs: np.ndarray, gamma: float, term
 
 @dataclass
 class PendingPiece:
-    """A trajectory piece being collected with z from the prior: its task, the buffer rows it filled and its z."""
+    """A trajectory piece being collected with z from the prior: its task and the buffer rows it filled."""
 
     task: int
-    z: np.ndarray  # (latent_dim,)
     rows: list[int] = field(default_factory=list)
+    log_probs: list[float] = field(default_factory=list)  # log pi_b(a | s, z) of each row's action, as it was drawn
 
 
-def start_piece(model: PEARL, state: OpenIteration, slot: int, task: int, z: th.Tensor) -> None:
+def start_piece(state: OpenIteration, slot: int, task: int) -> None:
     """Env ``slot`` starts a trajectory with z from the prior on ``task``: its rows will get Monte-Carlo returns."""
     if state.pieces is None:
         state.pieces = [None] * len(state.remaining)
-    state.pieces[slot] = PendingPiece(task, z.detach().cpu().numpy().copy())
+    state.pieces[slot] = PendingPiece(task)
 
 
-def record_row(model: PEARL, state: OpenIteration, slot: int, row: int, done: bool, terminated: bool) -> None:
-    """
-    Env ``slot`` stored buffer ``row`` in its piece; the piece ends with its trajectory (``done``), or as a cut when it
-    fills the buffer's capacity (older rows of the piece would be overwritten) and then goes on as a new piece.
-    """
+def record_row(model: PEARL, state: OpenIteration, slot: int, row: int, log_prob: float, done: bool, terminated: bool) -> None:
+    """Env ``slot`` stored buffer ``row`` (its action's log-probability ``log_prob``) in its piece, which ends with its
+    trajectory (``done``)."""
     piece = state.pieces[slot] if state.pieces is not None else None
     if piece is None:
         return
     piece.rows.append(row)
+    piece.log_probs.append(log_prob)
     if done:
         finish_piece(model, piece, terminated)
         state.pieces[slot] = None  # type: ignore[index]
-    elif len(piece.rows) == model.replay_buffer.rl.capacity:
-        finish_piece(model, piece, terminated=False)
-        state.pieces[slot] = PendingPiece(piece.task, piece.z)  # type: ignore[index]
+
+
+def cut_before_overwrite(model: PEARL, state: OpenIteration, task: int, row: int) -> None:
+    """
+    The RL buffer is about to write ``row`` of ``task``: an open piece that holds it (as its oldest row, since the ring
+    overwrites oldest first) is cut before it and goes on as a new piece. Its returns are written, then the overwritten
+    row loses its own (:meth:`TaskReplayBuffer.add`).
+    """
+    for slot, piece in enumerate(state.pieces or ()):
+        if piece is not None and piece.task == task and piece.rows and piece.rows[0] == row:
+            finish_piece(model, piece, terminated=False)
+            state.pieces[slot] = PendingPiece(piece.task)  # type: ignore[index]
 
 
 def finish_open_pieces(model: PEARL, state: OpenIteration, slots: list[int] | None = None) -> None:
@@ -128,12 +141,7 @@ def finish_piece(model: PEARL, piece: PendingPiece, terminated: bool) -> None:
         return
     buffer = model.replay_buffer.rl
     rows = np.asarray(piece.rows, dtype=np.int64)
-    observations = th.as_tensor(buffer.observations[piece.task, rows], device=model.device)  # (K, obs_dim)
-    actions = th.as_tensor(buffer.actions[piece.task, rows], device=model.device)  # (K, act_dim)
-    z = th.as_tensor(piece.z, device=model.device).expand(len(rows), -1)  # (K, L)
-    with th.no_grad():
-        log_probs = log_prob_of_actions(model.actor, th.cat([observations, z], dim=-1), actions)  # (K, 1)
     returns = piece_returns(
-        buffer.rewards[piece.task, rows, 0], log_probs.cpu().numpy()[:, 0], model.gamma, terminated, model.prior_return_steps
+        buffer.rewards[piece.task, rows, 0], np.asarray(piece.log_probs), model.gamma, terminated, model.prior_return_steps
     )
     buffer.write_returns(piece.task, rows, returns.reward_sum, returns.log_prob_sum, returns.discount, rows[returns.tail])

@@ -76,7 +76,7 @@ def compute_gradient_conflict(model: PEARL, buffer: MetaReplayBuffer, n_batches:
     per_batch = []
     for _ in range(n_batches):
         tasks = np.random.choice(candidates, size=model.meta_batch, replace=len(candidates) < model.meta_batch)
-        replay = buffer.rl.sample(tasks, model.batch_size, model.device)
+        replay = buffer.rl.sample(tasks, model.batch_size, model.device, returns=model.prior_target == "mc")
         ctx = buffer.context.sample(tasks, model.embedding_batch_size, model.device)
         context = model.policy.make_context(ctx.observations, ctx.actions, ctx.rewards, ctx.next_observations)
         z0 = th.randn(len(tasks), model.latent_dim, device=model.device)  # one prior z per task
