@@ -400,3 +400,65 @@ def test_the_gate_says_which_finished_runs_lack_the_measures(tmp_path: Any) -> N
     with pytest.raises(ValueError, match="do not name a prior-critic design"):
         selection_gate(dataclasses.replace(PRIOR_CRITIC, shared={}, after_selection=("alpha-1",)), "cpu", tmp_path)
     assert design_of("alpha-1-twin-priordata") == "twin-priordata" and design_of("pearlplus-twin") == "twin"
+
+
+def test_step_5_of_the_selection_rule_by_hand() -> None:
+    """Step 5 (docs/pearl.md): calibrated, k = 0 violations below PEARL's with a paired interval excluding zero, and the
+    adapted policy non-inferior (5 points, the family's return margin) on every family; intervals by hand."""
+    from sb3_pearl.reproduce.prior_report import outcome_rows, outcome_table, paper_form_of
+
+    def run(k0_violation: float, k5_violation: float, k5_return: float, rel: float = 0.1) -> dict[str, Any]:
+        summary = [
+            {"k": 0, "n": 10, "return_mean": -20.0, "violation_rate": k0_violation},
+            {"k": 5, "n": 10, "return_mean": k5_return, "violation_rate": k5_violation},
+        ]
+        return {**_run(rel, 0.9, 0.0, 0.0), "meta_test": {"summary": summary}}
+
+    group = {
+        "alpha-0": {s: run(v, 0.05, -10.0) for s, v in enumerate([0.3, 0.4, 0.5])},
+        "alpha-0.1": {s: run(0.3, 0.05, -10.0) for s in range(3)},
+        "alpha-0.1-mc": {s: run(*c) for s, c in enumerate([(0.1, 0.05, -10.0), (0.2, 0.06, -9.5), (0.2, 0.04, -10.5)])},
+        # safer too, but uncalibrated and its adapted return interval reaches below the margin (2.0 on safe-point)
+        "alpha-0.1-zfree": {s: run(0.1, 0.05, r, rel=0.3) for s, r in enumerate([-10.0, -9.0, -11.0])},
+    }
+    rows = {r.variant: r for r in outcome_rows(PRIOR_CRITIC, "safe-point", group)}
+    assert set(rows) == {"alpha-0.1-mc", "alpha-0.1-zfree"}
+    t = 4.302653  # the 97.5% quantile of Student's t with 2 degrees of freedom
+    mc, zfree = rows["alpha-0.1-mc"], rows["alpha-0.1-zfree"]
+    assert mc.n_seeds == 3 and mc.safer.mean == pytest.approx(-0.7 / 3)
+    assert mc.safer.high == pytest.approx(-0.7 / 3 + t * np.std([-0.2, -0.2, -0.3], ddof=1) / np.sqrt(3), rel=1e-5)
+    assert mc.vs_paper.mean == pytest.approx(-0.4 / 3)  # against alpha-0.1, the paper's form at the same alpha
+    assert mc.adapted_violation.high == pytest.approx(t * 0.01 / np.sqrt(3), rel=1e-5)  # 2.5 points < 5
+    assert mc.adapted_return.low == pytest.approx(-t * 0.5 / np.sqrt(3), rel=1e-5)  # -1.24 > -2
+    assert mc.calibrated and mc.is_safer and mc.adapted_not_worse and mc.passes
+    assert zfree.is_safer and not zfree.calibrated and not zfree.adapted_not_worse and not zfree.passes
+    assert zfree.adapted_return.low == pytest.approx(-t / np.sqrt(3), rel=1e-5)  # -2.48 < -2
+
+    walker = {
+        "pearl": {s: run(v, 0.1, 100.0) for s, v in enumerate([0.6, 0.7, 0.8])},
+        "pearlplus-mc": {s: run(v, 0.1, 100.0 + s) for s, v in enumerate([0.2, 0.3, 0.3])},
+    }
+    walker_rows = outcome_rows(PRIOR_CRITIC_WALKER, "walker2d-vel", walker)
+    assert [r.variant for r in walker_rows] == ["pearlplus-mc"] and walker_rows[0].passes
+    assert walker_rows[0].vs_paper.n == 0  # table1's pearlplus has no runs here: no pairing, not a failure
+    both = [*rows.values(), *walker_rows]
+    assert "**Recommended: mc**" in "\n".join(outcome_table(both, ["mc"], ["safe-point", "walker2d-vel"]))
+    assert "awaiting walker2d-vel" in "\n".join(outcome_table(list(rows.values()), ["mc"], ["safe-point", "walker2d-vel"]))
+    text = "\n".join(outcome_table(both, ["mc", "zfree"], ["safe-point", "walker2d-vel"]))
+    assert "**Recommended: mc**" in text and "zfree: fails on safe-point; no runs yet on walker2d-vel" in text
+    assert "**No selected design passes step 5**" in "\n".join(outcome_table(both, ["zfree"], ["safe-point"]))
+    assert "no design is judged yet" in "\n".join(outcome_table(both, [], ["safe-point"]))
+    assert paper_form_of("alpha-1-twin-priordata") == "alpha-1" and paper_form_of("pearlplus-twin-priordata") == "pearlplus"
+    with pytest.raises(ValueError, match="does not name a prior-critic design"):
+        paper_form_of("pearl")
+    # the report's section reads both experiments at their budgets; the selection is incomplete here
+    from sb3_pearl.reproduce.prior_report import outcome_section
+
+    groups = {
+        ("prior-critic", "cpu", "safe-point"): group,
+        ("prior-critic", "smoke", "safe-point"): group,  # another budget: not read
+        ("prior-critic-walker", "cpu", "walker2d-vel"): walker,
+    }
+    section = "\n".join(outcome_section(groups))
+    assert section.count("| safe-point | alpha-0.1-mc |") == 1 and "| walker2d-vel | pearlplus-mc |" in section
+    assert "no design is judged yet" in section

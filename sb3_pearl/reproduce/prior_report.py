@@ -14,9 +14,18 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
-from sb3_pearl.experiments.prior_critic import DESIGNS
-from sb3_pearl.experiments.spec import Experiment
-from sb3_pearl.reproduce.stats import mean_finite, median_finite
+from sb3_pearl.experiments.prior_critic import DESIGNS, design_variant
+from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Experiment
+from sb3_pearl.reproduce.cells import last_k, seed_values
+from sb3_pearl.reproduce.stats import (
+    REPRODUCED,
+    Interval,
+    mean_finite,
+    median_finite,
+    paired_differences,
+    t_interval,
+    verdict,
+)
 
 Group = Mapping[str, Mapping[int, dict[str, Any]]]
 
@@ -24,6 +33,7 @@ CALIBRATED_RELATIVE_ERROR = 0.25  # docs/pearl.md, the selection rule, step 2
 CALIBRATED_RANK_CORR = 0.5
 RETURN_TIE = 0.5  # step 3: designs within 0.5 of return are ordered by violations
 N_SELECTED = 2
+SELECTION_ALPHA = 0.1  # the alpha the rule ranks, and the one step 5 judges
 
 
 def _number(value: Any) -> float:
@@ -307,3 +317,186 @@ def selection_table(experiment: Experiment, groups: Mapping[str, Group]) -> list
         "",
         *lines,
     ]
+
+
+# -- step 5: the outcome ------------------------------------------------------------------------------------
+class OutcomeRow(NamedTuple):
+    """One design variant on one family, against that family's PEARL (step 5 of the selection rule)."""
+
+    family: str
+    variant: str
+    n_seeds: int  # seeds paired with PEARL at k = 0
+    relative_error: float  # medians over the variant's runs on this family (training tasks)
+    rank_corr: float
+    safer: Interval  # k = 0 violation rate minus PEARL's, paired over seeds
+    vs_paper: Interval  # k = 0 violation rate minus the paper's form's (same alpha), paired
+    adapted_violation: Interval  # last trajectory's violation rate minus PEARL's, paired
+    adapted_return: Interval  # last trajectory's return minus PEARL's, paired
+    return_margin: float  # the family's return margin
+
+    @property
+    def calibrated(self) -> bool:
+        return self.relative_error < CALIBRATED_RELATIVE_ERROR and self.rank_corr > CALIBRATED_RANK_CORR
+
+    @property
+    def is_safer(self) -> bool:
+        """The k = 0 violation rate is lower than PEARL's with a paired 95% interval that excludes zero."""
+        return self.safer.n >= 2 and math.isfinite(self.safer.high) and self.safer.high < 0
+
+    @property
+    def adapted_not_worse(self) -> bool:
+        """Non-inferior after adaptation: violations not higher by 5 points, return not lower by the family's margin."""
+        return (
+            verdict(self.adapted_violation, "not_higher", VIOLATION_MARGIN) == REPRODUCED
+            and verdict(self.adapted_return, "not_lower", self.return_margin) == REPRODUCED
+        )
+
+    @property
+    def passes(self) -> bool:
+        return self.calibrated and self.is_safer and self.adapted_not_worse
+
+
+def paper_form_of(variant: str) -> str:
+    """The paper's PEARL+ at the same alpha as a design variant: its name without the design (``alpha-1-mc``: ``alpha-1``)."""
+    design = design_of(variant)
+    if design is None:
+        raise ValueError(f"{variant!r} does not name a prior-critic design (a name ending with one of {sorted(DESIGNS)})")
+    return variant[: -len(design) - 1]
+
+
+def _paired(group: Group, variant: str, reference: str, k: int, metric: str) -> Interval:
+    if reference not in group:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    diffs = paired_differences(seed_values(group[variant], k, metric), seed_values(group[reference], k, metric))
+    return t_interval(list(diffs.values()))
+
+
+def outcome_rows(experiment: Experiment, family: str, group: Group) -> list[OutcomeRow]:
+    """
+    Step 5 of the selection rule (docs/pearl.md) for every design variant of ``group`` with runs: calibration on this
+    family's runs, the k = 0 violation rate against PEARL's (``experiment.reference``) and the paper's form's, and the
+    adapted policy (the last trajectory both rolled out) against PEARL's; every difference paired over seeds.
+
+    :param experiment: ``prior-critic`` or ``prior-critic-walker`` (its reference is PEARL)
+    :param family: the family of ``group``
+    :param group: variant -> seed -> result
+    :return: one row per design variant, in the experiment's order
+    """
+    reference = experiment.reference
+    if reference is None or reference not in group:
+        return []
+    rows = []
+    for variant in [v.name for v in experiment.variants if v.name in group and design_of(v.name) is not None]:
+        measured = [r for r in group[variant].values() if _measured(r)]
+        calibration = [calibration_of(r) for r in measured]
+        last = min(last_k(group[variant]), last_k(group[reference]))
+        safer = _paired(group, variant, reference, 0, "violation")
+        rows.append(
+            OutcomeRow(
+                family,
+                variant,
+                safer.n,
+                median_finite([c[1] for c in calibration]),
+                median_finite([c[2] for c in calibration]),
+                safer,
+                _paired(group, variant, paper_form_of(variant), 0, "violation"),
+                _paired(group, variant, reference, last, "violation"),
+                _paired(group, variant, reference, last, "return"),
+                experiment.family(family).return_margin,
+            )
+        )
+    return rows
+
+
+def _interval_cell(interval: Interval, digits: int = 1, scale: float = 1.0) -> str:
+    if interval.n == 0:
+        return "n/a"
+    mean = _fmt(interval.mean, digits, scale)
+    if not (math.isfinite(interval.low) and math.isfinite(interval.high)):
+        return mean
+    return f"{mean} [{_fmt(interval.low, digits, scale)}, {_fmt(interval.high, digits, scale)}]"
+
+
+def outcome_table(rows: Sequence[OutcomeRow], selected: Sequence[str], families: Sequence[str]) -> list[str]:
+    """
+    Step 5 of the selection rule over the families of both experiments, and its verdict for the selected designs.
+
+    :param rows: :func:`outcome_rows` of every family
+    :param selected: the designs steps 1-4 selected (empty while the selection is incomplete)
+    :param families: the families step 5 reads (every one must pass)
+    :return: markdown lines
+    """
+    if not rows:
+        return []
+    lines = [
+        "| family | variant | seeds | rel. error / rank corr. | calibrated | k = 0 violations minus PEARL's (points) "
+        "| minus the paper's form's (points) | last k: violations minus PEARL's (points) | last k: return minus PEARL's "
+        "| safer | adapted not worse | passes |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        lines.append(
+            f"| {row.family} | {row.variant} | {row.n_seeds} | {_fmt(row.relative_error)} / {_fmt(row.rank_corr)} | "
+            f"{'yes' if row.calibrated else 'no'} | {_interval_cell(row.safer, 1, 100)} | "
+            f"{_interval_cell(row.vs_paper, 1, 100)} | {_interval_cell(row.adapted_violation, 1, 100)} | "
+            f"{_interval_cell(row.adapted_return)} | {'yes' if row.is_safer else 'no'} | "
+            f"{'yes' if row.adapted_not_worse else 'no'} | {'**yes**' if row.passes else 'no'} |"
+        )
+    verdicts = []
+    recommended = []
+    for design in selected:
+        names = {design_variant(design, SELECTION_ALPHA).name, design_variant(design, SELECTION_ALPHA, "pearlplus").name}
+        mine = {r.family: r for r in rows if r.variant in names}
+        missing = [f for f in families if f not in mine]
+        failed = [f for f in families if f in mine and not mine[f].passes]
+        if failed:
+            not_run = f"; no runs yet on {', '.join(missing)}" if missing else ""
+            verdicts.append(f"{design}: fails on {', '.join(failed)}{not_run}")
+        elif missing:
+            verdicts.append(f"{design}: passes so far; awaiting {', '.join(missing)}")
+        else:
+            verdicts.append(f"{design}: passes on every family")
+            recommended.append(design)
+    if not selected:
+        outcome = "The selection is incomplete: no design is judged yet."
+    elif recommended:
+        outcome = f"**Recommended: {', '.join(recommended)}** ({'; '.join(verdicts)})."
+    elif all("fails" in v for v in verdicts):
+        outcome = f"**No selected design passes step 5** ({'; '.join(verdicts)})."
+    else:
+        outcome = f"Not decided yet ({'; '.join(verdicts)})."
+    return [
+        'Step 5 of the selection rule (docs/pearl.md, "The selection rule"): a selected design is recommended if, on '
+        f"every family ({', '.join(families)}), it is calibrated on that family's training-task runs, its k = 0 "
+        "violation rate on the held-out tasks is lower than PEARL's with a paired 95% t interval that excludes zero, "
+        "and its adapted policy (the last trajectory) is not worse: violations not higher by 5 points and return not "
+        "lower by the family's margin, both non-inferior at 95%. Every design variant is shown; the verdict reads the "
+        "selected designs at alpha 0.1.",
+        "",
+        *lines,
+        "",
+        outcome,
+    ]
+
+
+def outcome_section(groups: Mapping[tuple[str, str, str], Group]) -> list[str]:
+    """
+    Step 5 over ``prior-critic`` (SafePointGoal) and ``prior-critic-walker`` (Walker2D-vel), each at its own budget.
+
+    :param groups: :func:`~sb3_pearl.reproduce.cells.load_groups`'s (experiment, budget preset, family) -> group
+    :return: markdown lines (empty when no design variant has runs beside PEARL's)
+    """
+    from sb3_pearl.experiments.prior_critic import PRIOR_CRITIC, PRIOR_CRITIC_WALKER
+
+    rows: list[OutcomeRow] = []
+    for experiment in (PRIOR_CRITIC, PRIOR_CRITIC_WALKER):
+        for family in experiment.families:
+            group = groups.get((experiment.name, experiment.budget, family.name))
+            if group:
+                rows += outcome_rows(experiment, family.name, group)
+    ruling = (PRIOR_CRITIC.name, PRIOR_CRITIC.budget)
+    selection_groups = {family: group for (name, budget, family), group in groups.items() if (name, budget) == ruling}
+    ranked = rank_designs(PRIOR_CRITIC, selection_groups) if selection_groups else []
+    selected = [] if not ranked or incomplete_designs(PRIOR_CRITIC, ranked) else [r.design for r in select(ranked)]
+    families = [f.name for e in (PRIOR_CRITIC, PRIOR_CRITIC_WALKER) for f in e.families]
+    return outcome_table(rows, selected, families)

@@ -32,7 +32,7 @@ from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Claim, Experiment, reso
 from sb3_pearl.reproduce.cells import Group, cell_stats, last_k, load_groups, load_partway_curves, seed_values
 from sb3_pearl.reproduce.curve import curve_table
 from sb3_pearl.reproduce.layout import find_results
-from sb3_pearl.reproduce.prior_report import prior_critic_table, selection_table
+from sb3_pearl.reproduce.prior_report import outcome_section, prior_critic_table, selection_table
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval, verdict
 
 BEGIN = "<!-- reproduce:begin -->"
@@ -416,6 +416,9 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
                     f"![the selection rule's measures, {experiment.name}]({figures_link.rstrip('/')}/{selection_name})",
                     "",
                 ]
+            outcome = outcome_section(groups)
+            if outcome:
+                out += ["### Prior-critic designs: the outcome (step 5 of the rule)", "", *outcome, ""]
     return "\n".join(out)
 
 
