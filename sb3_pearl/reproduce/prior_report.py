@@ -333,6 +333,11 @@ class OutcomeRow(NamedTuple):
     adapted_violation: Interval  # last trajectory's violation rate minus PEARL's, paired
     adapted_return: Interval  # last trajectory's return minus PEARL's, paired
     return_margin: float  # the family's return margin
+    n_expected: int  # the experiment's seeds: a row with fewer is not judged yet
+
+    @property
+    def complete(self) -> bool:
+        return self.n_seeds >= self.n_expected
 
     @property
     def calibrated(self) -> bool:
@@ -345,15 +350,24 @@ class OutcomeRow(NamedTuple):
 
     @property
     def adapted_not_worse(self) -> bool:
-        """Non-inferior after adaptation: violations not higher by 5 points, return not lower by the family's margin."""
+        """
+        The adapted policy is not worse than PEARL's: its violation rate within 5 points (equivalent at 95%, the
+        experiments' own "equal" claims) and its return not lower by more than the family's margin (non-inferior at 95%).
+        """
         return (
-            verdict(self.adapted_violation, "not_higher", VIOLATION_MARGIN) == REPRODUCED
+            verdict(self.adapted_violation, "equal", VIOLATION_MARGIN) == REPRODUCED
             and verdict(self.adapted_return, "not_lower", self.return_margin) == REPRODUCED
         )
 
     @property
     def passes(self) -> bool:
         return self.calibrated and self.is_safer and self.adapted_not_worse
+
+    @property
+    def failures(self) -> list[str]:
+        """Which conditions of step 5 the row does not meet."""
+        checks = [(self.calibrated, "not calibrated"), (self.is_safer, "prior not safer")]
+        return [text for ok, text in checks + [(self.adapted_not_worse, "adapted policy not shown as good")] if not ok]
 
 
 def paper_form_of(variant: str) -> str:
@@ -403,6 +417,7 @@ def outcome_rows(experiment: Experiment, family: str, group: Group) -> list[Outc
                 _paired(group, variant, reference, last, "violation"),
                 _paired(group, variant, reference, last, "return"),
                 experiment.family(family).return_margin,
+                len(experiment.seeds),
             )
         )
     return rows
@@ -434,23 +449,37 @@ def outcome_table(rows: Sequence[OutcomeRow], selected: Sequence[str], families:
         "| safer | adapted not worse | passes |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def judged(row: OutcomeRow, value: bool, bold: bool = False) -> str:
+        if row.n_seeds < 2:
+            return "n/a"
+        text = ("**yes**" if bold else "yes") if value else "no"
+        return text if row.complete else f"{text} (so far)"
+
     for row in rows:
         lines.append(
-            f"| {row.family} | {row.variant} | {row.n_seeds} | {_fmt(row.relative_error)} / {_fmt(row.rank_corr)} | "
-            f"{'yes' if row.calibrated else 'no'} | {_interval_cell(row.safer, 1, 100)} | "
+            f"| {row.family} | {row.variant} | {row.n_seeds} of {row.n_expected} | {_fmt(row.relative_error)} / "
+            f"{_fmt(row.rank_corr)} | {'yes' if row.calibrated else 'no'} | {_interval_cell(row.safer, 1, 100)} | "
             f"{_interval_cell(row.vs_paper, 1, 100)} | {_interval_cell(row.adapted_violation, 1, 100)} | "
-            f"{_interval_cell(row.adapted_return)} | {'yes' if row.is_safer else 'no'} | "
-            f"{'yes' if row.adapted_not_worse else 'no'} | {'**yes**' if row.passes else 'no'} |"
+            f"{_interval_cell(row.adapted_return)} | {judged(row, row.is_safer)} | {judged(row, row.adapted_not_worse)} | "
+            f"{judged(row, row.passes, bold=True)} |"
         )
     verdicts = []
     recommended = []
     for design in selected:
         names = {design_variant(design, SELECTION_ALPHA).name, design_variant(design, SELECTION_ALPHA, "pearlplus").name}
         mine = {r.family: r for r in rows if r.variant in names}
-        missing = [f for f in families if f not in mine]
-        failed = [f for f in families if f in mine and not mine[f].passes]
+        # a family is judged once the design has every seed there; before that it is awaited
+        missing = [
+            f if f not in mine else f"{f} ({mine[f].n_seeds} of {mine[f].n_expected} seeds)"
+            for f in families
+            if f not in mine or not mine[f].complete
+        ]
+        failed = [
+            f"{f} ({', '.join(mine[f].failures)})" for f in families if f in mine and mine[f].complete and not mine[f].passes
+        ]
         if failed:
-            not_run = f"; no runs yet on {', '.join(missing)}" if missing else ""
+            not_run = f"; awaiting {', '.join(missing)}" if missing else ""
             verdicts.append(f"{design}: fails on {', '.join(failed)}{not_run}")
         elif missing:
             verdicts.append(f"{design}: passes so far; awaiting {', '.join(missing)}")
@@ -469,9 +498,10 @@ def outcome_table(rows: Sequence[OutcomeRow], selected: Sequence[str], families:
         'Step 5 of the selection rule (docs/pearl.md, "The selection rule"): a selected design is recommended if, on '
         f"every family ({', '.join(families)}), it is calibrated on that family's training-task runs, its k = 0 "
         "violation rate on the held-out tasks is lower than PEARL's with a paired 95% t interval that excludes zero, "
-        "and its adapted policy (the last trajectory) is not worse: violations not higher by 5 points and return not "
-        "lower by the family's margin, both non-inferior at 95%. Every design variant is shown; the verdict reads the "
-        "selected designs at alpha 0.1.",
+        "and its adapted policy (the last trajectory) is not worse: violations within 5 points of PEARL's (equivalent "
+        "at 95%) and return not lower by more than the family's margin (non-inferior at 95%). A family is judged once "
+        "the design has all its seeds there. Every design variant is shown; the verdict reads the selected designs at "
+        "alpha 0.1.",
         "",
         *lines,
         "",
