@@ -58,7 +58,8 @@ class PEARLPlus(PEARL):
 
     The prior-critic designs compared in docs/pearl.md ("Prior-critic designs") combine ``prior_n_critics`` (2: twin
     minimum; 5: a pessimistic ensemble), ``prior_data``, ``prior_critic_input``, ``prior_target`` (with
-    ``prior_return_steps``) and ``prior_conservative_weight``; every default is the paper's form.
+    ``prior_return_steps``) and ``prior_conservative_weight``; every default is the paper's form. None is recommended:
+    the pre-written selection on SafePointGoal found no design calibrated (docs/pearl.md, "What the selection found").
     """
 
     def __init__(
