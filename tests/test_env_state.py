@@ -2,16 +2,24 @@
 
 from __future__ import annotations
 
+import re
 import threading
+from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 import sb3_pearl  # noqa: F401  (registers the families)
-from sb3_pearl.common.env_state import capture_env_state, restore_env_state
+from sb3_pearl import PEARLPlus
+from sb3_pearl.common import env_state
+from sb3_pearl.common.env_state import EnvStateError, capture_env_state, restore_env_state
+from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+from tests.conftest import TINY
 
 
 def vec_env(env_id: str, n_envs: int = 2, seed: int = 0) -> DummyVecEnv:
@@ -72,3 +80,38 @@ def test_envs_in_other_processes_and_unpicklable_state_are_not_captured() -> Non
     env.envs[0].unwrapped.lock = threading.Lock()  # type: ignore[attr-defined]
     with pytest.warns(UserWarning, match=r"state of env 0 cannot be saved: SafePointGoalMetaEnv\.lock does not pickle"):
         assert capture_env_state(env) is None
+
+
+def test_a_snapshot_another_mujoco_cannot_read_is_a_clear_error(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """MuJoCo 4.0.1 refuses an MjData pickled by 4.0.0 ("Invalid serialized mjModel"): evaluation loads warn and reset,
+    the harness' exact resume stops with both versions and what to do."""
+    import mujoco
+
+    env = vec_env("HalfCheetahVelMeta-v0", n_envs=1)
+    transitions(env, [np.zeros((1, 6), dtype=np.float32)] * 5)
+    state = capture_env_state(env)
+    assert state is not None and state["mujoco"] == mujoco.__version__  # recorded with the snapshot
+
+    model = PEARLPlus("MlpPolicy", "HalfCheetahVelMeta-v0", seed=0, **{**TINY, "num_initial_steps": 30})
+    model.learn(30)  # mid-episode: the zip holds the envs' open episodes
+    model.save(tmp_path / "model.zip")
+    checkpoint = RunCheckpoint(tmp_path / "run")
+    files = checkpoint.save_model(model, None)
+
+    def refuse(self: Any) -> Any:
+        raise ValueError("Invalid serialized mjModel.")
+
+    monkeypatch.setattr(env_state._Unpickler, "load", refuse)
+    with pytest.raises(EnvStateError, match=rf"written with MuJoCo {re.escape(mujoco.__version__)} and this process has"):
+        restore_env_state(vec_env("HalfCheetahVelMeta-v0", n_envs=1), state)
+
+    with pytest.warns(UserWarning, match=r"Invalid serialized mjModel.*pip install mujoco==.*new episodes instead"):
+        loaded = PEARLPlus.load(tmp_path / "model.zip", env=gym.make("HalfCheetahVelMeta-v0"))
+    assert loaded._last_obs is None  # reset before its next learn(), as SB3 does; the weights are whole
+    for name, tensor in model.policy.state_dict().items():
+        assert th.equal(tensor, loaded.policy.state_dict()[name])
+
+    with pytest.raises(EnvStateError, match=r"pip install mujoco==.*or restart the run from zero with --force"):
+        checkpoint.load_model(
+            {"files": files, "num_timesteps": model.num_timesteps}, PEARLPlus, gym.make("HalfCheetahVelMeta-v0")
+        )

@@ -21,12 +21,18 @@ How it stays generic and correct:
 
 A ``SubprocVecEnv`` or another VecEnv type is not captured (its envs live in other processes).
 The snapshot is zlib-compressed (MuJoCo's ``MjData`` holds a mostly empty arena).
+
+A pickled ``MjData`` carries its model serialized by the MuJoCo that wrote it, and another MuJoCo release may refuse
+to read it ("Invalid serialized mjModel", seen between 4.0.0 and 4.0.1): the snapshot records the MuJoCo version
+(``mujoco``) and :func:`restore_env_state` raises :class:`EnvStateError` naming both versions when it cannot read a
+snapshot (``make setup`` pins MuJoCo in ``constraints.txt`` so that committed checkpoints stay readable).
 """
 
 from __future__ import annotations
 
 import io
 import pickle
+import sys
 import warnings
 import zlib
 from typing import Any
@@ -36,6 +42,16 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 # Attributes with no dynamics that need not (and often cannot) be pickled: kept from the new env.
 SKIPPED_ATTRIBUTES = frozenset({"env", "results_writer", "mujoco_renderer", "viewer", "renderer", "_renderer"})
+
+
+class EnvStateError(ValueError):
+    """A saved env snapshot that cannot be read here (written by another MuJoCo release, most often)."""
+
+
+def _mujoco_version() -> str | None:
+    """The version of the MuJoCo loaded in this process (None: not loaded, so no MuJoCo object was snapshotted)."""
+    module = sys.modules.get("mujoco")
+    return getattr(module, "__version__", None) if module is not None else None
 
 
 def _layers(env: gym.Env) -> list[Any]:
@@ -138,7 +154,7 @@ def capture_env_state(env: VecEnv | None) -> dict[str, Any] | None:
     snapshots = [_capture_one(e, i) for i, e in enumerate(dummy.envs)]
     if any(s is None for s in snapshots):
         return None
-    return {"envs": snapshots, "seeds": list(dummy._seeds), "options": list(dummy._options)}
+    return {"envs": snapshots, "seeds": list(dummy._seeds), "options": list(dummy._options), "mujoco": _mujoco_version()}
 
 
 def restore_env_state(env: VecEnv | None, state: dict[str, Any]) -> bool:
@@ -149,6 +165,8 @@ def restore_env_state(env: VecEnv | None, state: dict[str, Any]) -> bool:
     :param state: the snapshot
     :return: whether the state was restored (False, and nothing changed, when the env does not fit:
         another VecEnv type, another number of envs, or another wrapper chain)
+    :raises EnvStateError: (nothing changed) when a snapshot cannot be read here, with the MuJoCo versions that wrote
+        and that read it
     """
     dummy = dummy_vec_env(env)
     snapshots = state["envs"]
@@ -157,7 +175,16 @@ def restore_env_state(env: VecEnv | None, state: dict[str, Any]) -> bool:
     decoded = []
     for e, snapshot in zip(dummy.envs, snapshots):
         layers = _layers(e)
-        chain, attributes = _Unpickler(io.BytesIO(zlib.decompress(snapshot)), _live_objects(layers)).load()
+        try:
+            chain, attributes = _Unpickler(io.BytesIO(zlib.decompress(snapshot)), _live_objects(layers)).load()
+        except (ValueError, pickle.UnpicklingError, EOFError, zlib.error) as error:
+            saved = state.get("mujoco")
+            writer = f"MuJoCo {saved}" if saved else "a MuJoCo whose version it does not record (written before 2026-12-04)"
+            raise EnvStateError(
+                f"the envs' saved mid-episode state cannot be read here ({type(error).__name__}: {error}); it was written "
+                f"with {writer} and this process has MuJoCo {_mujoco_version() or '(not loaded)'}: install the version "
+                "that wrote it (pip install mujoco==<version>) to continue its episodes exactly"
+            ) from error
         if chain != [type(layer).__qualname__ for layer in layers]:
             return False
         decoded.append((layers, attributes))

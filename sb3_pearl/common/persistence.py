@@ -38,7 +38,7 @@ from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_pearl.common.atomic import atomic_write, sb3_file_path
-from sb3_pearl.common.env_state import capture_env_state, restore_env_state
+from sb3_pearl.common.env_state import EnvStateError, capture_env_state, restore_env_state
 from sb3_pearl.common.seeding import capture_training_rng_state, restore_training_rng_state
 from sb3_pearl.envs.task_protocol import Task
 
@@ -241,6 +241,7 @@ class SaveLoadMixin(_AlgorithmBase):
         print_system_info: bool = False,
         force_reset: bool = True,
         restore_env: bool = True,
+        strict_env: bool = False,
         **kwargs: Any,
     ) -> SelfSaveLoad:
         """
@@ -259,6 +260,9 @@ class SaveLoadMixin(_AlgorithmBase):
         :param force_reset: reset the env before the next ``learn`` (unless its saved state is restored)
         :param restore_env: restore the envs' saved state into ``env`` when the zip holds one and ``env`` has the same
             structure (same number of envs, same wrappers); otherwise (or False) the env is reset, as in SB3
+        :param strict_env: raise :class:`~sb3_pearl.common.env_state.EnvStateError` when the saved env state cannot be
+            read here (another MuJoCo release wrote it); False: warn and reset the env (the model, its RNG streams and
+            everything else load whole: what evaluation needs). The harness resumes strictly (exact resume)
         :param kwargs: attributes to set on the loaded model
         :return: the model
         """
@@ -276,7 +280,14 @@ class SaveLoadMixin(_AlgorithmBase):
         env_state = model.__dict__.pop("_env_state", None)
         if restore_env and env is not None:
             resumable = env_state is not None and model._last_obs is not None
-            if not (resumable and restore_env_state(model.env, env_state)):
+            try:
+                restored = resumable and restore_env_state(model.env, env_state)
+            except EnvStateError as error:
+                if strict_env:
+                    raise EnvStateError(f"{path}: {error}") from error
+                warnings.warn(f"{path}: {error}. The envs start new episodes instead.", stacklevel=2)
+                restored = False
+            if not restored:
                 model._last_obs = None  # nothing to continue: SB3's reset before the next learn()
         state = getattr(model, "_rng_state", None)
         if state is not None:  # the saved streams, not SB3's reseed; the envs' at the first learn()

@@ -42,6 +42,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import CSVOutputFormat, Logger
 
 from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.common.env_state import EnvStateError
 
 CHECKPOINT_DIR = "checkpoint"
 STATE_FILE = "state.json"
@@ -107,9 +108,17 @@ class RunCheckpoint:
         return files
 
     def load_model(self, state: dict[str, Any], algo_cls: Any, env: Any, device: str = "auto") -> Any:
-        """The checkpoint's model on ``env`` (envs' episodes and RNG streams restored), with its replay buffer."""
+        """
+        The checkpoint's model on ``env`` (envs' episodes and RNG streams restored), with its replay buffer.
+
+        Strict about the envs' saved episodes: a snapshot this MuJoCo cannot read (another release wrote it) stops the
+        resume with the versions to install, rather than continuing a run that would differ from an unsplit one.
+        """
         files = state["files"]
-        model = algo_cls.load(self.folder / files["model"], env=env, device=device)
+        try:
+            model = algo_cls.load(self.folder / files["model"], env=env, device=device, strict_env=True)
+        except EnvStateError as error:
+            raise EnvStateError(f"{error}, or restart the run from zero with --force") from error
         if hasattr(model, "load_replay_buffer"):
             if "replay" in files:
                 model.load_replay_buffer(self.folder / files["replay"])

@@ -1,0 +1,213 @@
+"""Velocity tracking of a trained model on a velocity family (Walker2D-vel, HalfCheetah-Vel).
+
+The competence criterion of these families is the mean absolute error of the forward velocity per step of the
+posterior trajectories (``sb3_pearl.experiments.families``). That one number mixes two failures that call for
+different remedies:
+
+- the *mean-speed error* ``|mean_t v_t - v*|`` of each trajectory: the policy walks at the wrong speed (a
+  locomotion skill not learnt, or a task not inferred);
+- the gait's *oscillation* around its own mean (``std_t v_t``): a walking gait's forward velocity swings within
+  each stride, and the acceleration from rest at the start counts too.
+
+The per-step error is never below the mean-speed error (``mean |v - v*| >= |mean v - v*|``). Regressing each
+trajectory's mean speed on its target tells the two causes of a mean-speed error apart: a slope near 1 with a
+large error is a task not inferred for some tasks, a slope well below 1 with the mean speed still ordered by
+the target is inference that works and a gait that does not reach the speed.
+
+``python -m sb3_pearl.evaluation.tracking RUN [RUN ...] [--plot out.png]`` reruns each harness run's competence
+meta-test (its training tasks, settings and eval seed from ``result.json``: the same trajectories its competence
+value was measured on) with the velocity trace, and prints the split per task; ``--plot`` draws each
+trajectory's mean speed against its target.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from sb3_pearl.evaluation.held_out import run_meta_test
+from sb3_pearl.evaluation.meta_test import MetaTestResult
+
+VELOCITY_KEY = "x_velocity"  # the forward velocity in gymnasium's MuJoCo info dicts
+TARGET_KEY = "velocity"  # the target velocity in a velocity family's task dict
+REWARD_KEY = "reward_forward"  # -|v - v*| per step: recorded with the velocity so the two can be checked against each other
+
+
+def velocity_tracking(
+    result: MetaTestResult, min_k: int = 1, velocity_key: str = VELOCITY_KEY, target_key: str = TARGET_KEY
+) -> dict[str, Any]:
+    """
+    Split the per-step velocity error of the trajectories ``k >= min_k`` into the mean-speed error and the oscillation.
+
+    :param result: a meta-test whose traces hold ``velocity_key`` and whose tasks hold ``target_key``
+    :param min_k: first trajectory index counted (1: the posterior trajectories, as the competence criterion)
+    :param velocity_key: per-step trace of the forward velocity
+    :param target_key: task entry of the target velocity
+    :return: ``per_step_error``, ``mean_speed_error``, ``oscillation`` (means over trajectories), ``slope`` and
+        ``intercept`` of the least-squares line of mean speed on target (None with fewer than two distinct targets),
+        ``n_trajectories`` and ``tasks`` (per task: target, mean speed and the three errors, averaged over its
+        trajectories)
+    """
+    per_traj: list[tuple[int, float, float, float, float, float]] = []  # task, target, mean v, per-step, mean-speed, std
+    for trace in result.traces:
+        if int(trace["k"]) < min_k or not trace.get(velocity_key):
+            continue
+        task = int(trace["task"])
+        if target_key not in result.tasks[task]:
+            raise ValueError(
+                f"velocity_tracking: task {task} has no {target_key!r} entry ({result.tasks[task]}): not a velocity family"
+            )
+        target = float(result.tasks[task][target_key])
+        v = np.asarray(trace[velocity_key], dtype=np.float64)  # (steps,)
+        per_traj.append(
+            (task, target, float(v.mean()), float(np.abs(v - target).mean()), abs(float(v.mean()) - target), float(v.std()))
+        )
+    if not per_traj:
+        raise ValueError(f"velocity_tracking: no trajectory with k >= {min_k} has a {velocity_key!r} trace")
+    table = np.array([row[1:] for row in per_traj])  # (trajectories, 5): target, mean v, per-step, mean-speed, std
+    tasks = []
+    for task in sorted({row[0] for row in per_traj}):
+        rows = table[[i for i, row in enumerate(per_traj) if row[0] == task]]
+        tasks.append(
+            {
+                "task": task,
+                "target": float(rows[0, 0]),
+                "mean_speed": float(rows[:, 1].mean()),
+                "per_step_error": float(rows[:, 2].mean()),
+                "mean_speed_error": float(rows[:, 3].mean()),
+                "oscillation": float(rows[:, 4].mean()),
+                "n_trajectories": len(rows),
+            }
+        )
+    slope: float | None = None
+    intercept: float | None = None
+    if len(np.unique(table[:, 0])) > 1:
+        slope, intercept = (float(x) for x in np.polyfit(table[:, 0], table[:, 1], 1))
+    return {
+        "per_step_error": float(table[:, 2].mean()),
+        "mean_speed_error": float(table[:, 3].mean()),
+        "oscillation": float(table[:, 4].mean()),
+        "slope": slope,
+        "intercept": intercept,
+        "n_trajectories": len(per_traj),
+        "min_k": min_k,
+        "tasks": tasks,
+    }
+
+
+def rerun_competence(run: str | Path, n_tasks: int | None = None) -> MetaTestResult:
+    """
+    The competence meta-test of a harness run folder again, with the velocity trace.
+
+    :param run: ``results/<exp>/<family>/<variant>/seed<N>/`` with ``result.json`` (that holds a competence record) and
+        ``model.zip``
+    :param n_tasks: training tasks (None: the number the competence check used)
+    :return: the meta-test
+    """
+    from sb3_pearl.diagnose import find_run, load_model  # the run-folder layout and the model class, as ``diagnose``
+
+    folder = Path(run)
+    model_path, env_id, env_kwargs = find_run(folder)
+    record = json.loads((folder / "result.json").read_text())
+    settings = (record.get("competence") or {}).get("settings")
+    if not settings or "eval_seed" not in record:
+        raise ValueError(f"{folder}/result.json has no competence settings or eval_seed: not a finished harness run")
+    env = gym.make(env_id, **env_kwargs)
+    model = load_model(model_path, env, device="cpu")
+    tasks = list(model.train_tasks)[: int(n_tasks or settings["n_tasks"])]
+    try:
+        return run_meta_test(model, env, tasks, settings, int(record["eval_seed"]), [VELOCITY_KEY, REWARD_KEY])
+    finally:
+        env.close()
+
+
+def format_tracking(name: str, tracking: Mapping[str, Any]) -> str:
+    """A text table of :func:`velocity_tracking`: one line per task, then the means and the fitted line."""
+    lines = [
+        f"{name}: {tracking['n_trajectories']} trajectories (k >= {tracking['min_k']})",
+        f"{'task':>5} {'target':>7} {'mean v':>7} {'per-step err':>13} {'mean-speed err':>15} {'oscillation':>12}",
+    ]
+    for row in tracking["tasks"]:
+        lines.append(
+            f"{row['task']:>5} {row['target']:>7.2f} {row['mean_speed']:>7.2f} {row['per_step_error']:>13.3f}"
+            f" {row['mean_speed_error']:>15.3f} {row['oscillation']:>12.3f}"
+        )
+    lines.append(
+        f"{'mean':>5} {'':>7} {'':>7} {tracking['per_step_error']:>13.3f} {tracking['mean_speed_error']:>15.3f}"
+        f" {tracking['oscillation']:>12.3f}"
+    )
+    if tracking["slope"] is not None:
+        lines.append(f"least-squares line: mean speed = {tracking['slope']:.2f} x target {tracking['intercept']:+.2f}")
+    return "\n".join(lines)
+
+
+def plot_tracking(runs: Mapping[str, Mapping[str, Any]], path: str | Path, title: str = "") -> None:
+    """
+    Each task's mean speed against its target, one marker per run, with the line of perfect tracking.
+
+    :param runs: name -> :func:`velocity_tracking`
+    :param path: the PNG
+    :param title: figure title
+    """
+    from sb3_pearl.evaluation.figures import _save, plt  # the package's matplotlib set-up (Agg backend)
+
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    top = 0.0
+    for name, tracking in runs.items():
+        targets = [row["target"] for row in tracking["tasks"]]
+        speeds = [row["mean_speed"] for row in tracking["tasks"]]
+        top = max(top, *targets, *speeds)
+        ax.plot(targets, speeds, "o", alpha=0.8, label=f"{name} (per-step error {tracking['per_step_error']:.2f})")
+    ax.plot([0, top], [0, top], "k--", lw=1, label="perfect tracking")
+    ax.set_xlabel("target velocity [m/s]")
+    ax.set_ylabel("mean forward velocity of the posterior trajectories [m/s]")
+    ax.legend(fontsize=7)
+    _save(fig, path, title)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m sb3_pearl.evaluation.tracking", description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", help="harness run folders (result.json + model.zip) of a velocity family")
+    p.add_argument("--n-tasks", type=int, default=None, help="training tasks (default: those of the competence check)")
+    p.add_argument("--plot", default=None, metavar="PNG", help="draw mean speed against target to this PNG")
+    p.add_argument("--title", default="", help="title of the figure")
+    p.add_argument("--json", action="store_true", help="print JSON instead of the tables")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
+    """
+    Rerun each run's competence meta-test and print its velocity tracking.
+
+    :param argv: arguments (default: ``sys.argv[1:]``)
+    :return: run folder -> :func:`velocity_tracking`
+    """
+    from sb3_pearl.diagnose import RunFolderError
+
+    p = parser()
+    args = p.parse_args(argv)
+    results: dict[str, dict[str, Any]] = {}
+    for run in args.runs:
+        try:
+            results[run] = velocity_tracking(rerun_competence(run, args.n_tasks))
+        except (RunFolderError, ValueError) as error:
+            p.error(f"{run}: {error}")
+        if not args.json:
+            print(format_tracking(run, results[run]), flush=True)
+    if args.json:
+        print(json.dumps(results, indent=1))
+    if args.plot:
+        plot_tracking(
+            {Path(run).parent.parent.name + " " + Path(run).name: t for run, t in results.items()}, args.plot, args.title
+        )
+    return results
+
+
+if __name__ == "__main__":
+    main()
