@@ -18,28 +18,33 @@ def _result() -> MetaTestResult:
     tasks = [{"velocity": 1.0}, {"velocity": 2.0}]
     traces = [
         {"task": 0, "repeat": 0, "k": 0, "x_velocity": [5.0, 5.0]},  # k = 0: the prior's, not counted
-        {"task": 0, "repeat": 0, "k": 1, "x_velocity": [0.0, 1.0, 2.0, 1.0]},  # mean 1: no mean-speed error
-        {"task": 1, "repeat": 0, "k": 1, "x_velocity": [1.0, 1.0]},  # mean 1 for a target of 2, no oscillation
-        {"task": 1, "repeat": 0, "k": 2, "x_velocity": [0.0, 2.0]},  # mean 1, oscillating by 1
+        {"task": 0, "repeat": 0, "k": 1, "x_velocity": [0.2, 0.6, 1.0, 0.6]},  # mean 0.6, per-step error 0.4
+        {"task": 1, "repeat": 0, "k": 1, "x_velocity": [1.1, 1.1]},  # mean 1.1, no oscillation
+        {"task": 1, "repeat": 0, "k": 2, "x_velocity": [0.1, 2.1]},  # mean 1.1, oscillating by 1
     ]
     return MetaTestResult(rows=[], summary=[], tasks=tasks, traces=traces)
 
 
 def test_the_split_by_hand() -> None:
     tracking = velocity_tracking(_result())
-    # per trajectory (per-step error, mean-speed error, std): (0.5, 0, sqrt(0.5)), (1, 1, 0), (1, 1, 1)
+    # per trajectory (per-step error, mean-speed error, std): (0.4, 0.4, sqrt(0.08)), (0.9, 0.9, 0), (1.0, 0.9, 1)
     assert tracking["n_trajectories"] == 3
-    assert tracking["per_step_error"] == pytest.approx((0.5 + 1.0 + 1.0) / 3)
-    assert tracking["mean_speed_error"] == pytest.approx(2.0 / 3)
-    assert tracking["oscillation"] == pytest.approx((np.sqrt(0.5) + 0.0 + 1.0) / 3)
-    # every trajectory walks at 1 m/s whatever its target: slope 0, intercept 1
-    assert tracking["slope"] == pytest.approx(0.0, abs=1e-12) and tracking["intercept"] == pytest.approx(1.0)
+    assert tracking["per_step_error"] == pytest.approx((0.4 + 0.9 + 1.0) / 3)
+    assert tracking["mean_speed_error"] == pytest.approx((0.4 + 0.9 + 0.9) / 3)
+    assert tracking["oscillation"] == pytest.approx((np.sqrt(0.08) + 0.0 + 1.0) / 3)
+    # mean speed = 0.5 x target + 0.1 on every trajectory (one at target 1, two at target 2: the fit is over trajectories)
+    assert tracking["slope"] == pytest.approx(0.5) and tracking["intercept"] == pytest.approx(0.1)
     task0, task1 = tracking["tasks"]
-    assert (task0["target"], task0["mean_speed"], task0["n_trajectories"]) == (1.0, 1.0, 1)
-    assert (task1["target"], task1["per_step_error"], task1["mean_speed_error"], task1["n_trajectories"]) == (2.0, 1.0, 1.0, 2)
+    assert (task0["target"], task0["n_trajectories"]) == (1.0, 1) and task0["mean_speed"] == pytest.approx(0.6)
+    assert (task1["target"], task1["n_trajectories"]) == (2.0, 2) and task1["mean_speed"] == pytest.approx(1.1)
+    assert task1["per_step_error"] == pytest.approx(0.95) and task1["mean_speed_error"] == pytest.approx(0.9)
     assert task1["oscillation"] == pytest.approx(0.5)
     # the prior's trajectory counts from min_k = 0 on
     assert velocity_tracking(_result(), min_k=0)["n_trajectories"] == 4
+    # one target only: no line
+    single = _result()
+    single.traces = single.traces[2:]
+    assert velocity_tracking(single)["slope"] is None
 
 
 def test_bad_input_says_what_is_wrong() -> None:
@@ -60,19 +65,27 @@ def test_the_command_reruns_the_competence_meta_test(tmp_path: Path, capsys: pyt
     family = {"name": "cheetah-vel", "env_id": "HalfCheetahVelMeta-v0", "env_kwargs": {}}
     spec = {"experiment": "exp", "family": family, "variant": {"name": "pearlplus", "algo": "pearlplus"}}
     settings = {"n_tasks": 2, "n_repeats": 1, "n_adapt": 1, "deterministic": True}
-    (run / "result.json").write_text(json.dumps({"spec": spec, "eval_seed": 7, "competence": {"settings": settings}}))
+    record = {"spec": spec, "eval_seed": 7, "competence": {"settings": settings}}
+    (run / "result.json").write_text(json.dumps(record))
     plot = tmp_path / "tracking.png"
     results = main([str(run), "--plot", str(plot)])
     tracking = results[str(run)]
     assert tracking["n_trajectories"] == 2 and len(tracking["tasks"]) == 2  # k = 1 on two training tasks
     assert [row["target"] for row in tracking["tasks"]] == [t["velocity"] for t in model.train_tasks[:2]]
-    assert tracking["per_step_error"] >= tracking["mean_speed_error"]  # |mean(v - v*)| <= mean |v - v*|
     assert "per-step err" in capsys.readouterr().out and plot.stat().st_size > 0
     assert main([str(run), "--json"])[str(run)] == tracking  # the same trajectories: seeded by the run's eval seed
     # the family's own per-step error (the competence criterion's trace, -|v - v*|) is what the split starts from
     rerun = rerun_competence(run)
     criterion = np.mean([-np.mean(t["reward_forward"]) for t in rerun.traces if t["k"] >= 1])
     assert tracking["per_step_error"] == pytest.approx(criterion, rel=1e-6)
+    assert tracking["committed_per_step_error"] is None  # the record holds no criterion value
+
+    # against the value a result.json holds: silent when the rerun reproduces it, a warning when it does not
+    for value, warned in ((criterion, False), (criterion + 0.5, True)):
+        record["competence"]["criteria"] = [{"key": "reward_forward", "value": value}]
+        (run / "result.json").write_text(json.dumps(record))
+        assert main([str(run), "--json"])[str(run)]["committed_per_step_error"] == value
+        assert ("is not result.json's" in capsys.readouterr().err) is warned
 
     (run / "result.json").write_text(json.dumps({"spec": spec}))
     with pytest.raises(SystemExit):

@@ -178,12 +178,15 @@ def restore_env_state(env: VecEnv | None, state: dict[str, Any]) -> bool:
         try:
             chain, attributes = _Unpickler(io.BytesIO(zlib.decompress(snapshot)), _live_objects(layers)).load()
         except (ValueError, pickle.UnpicklingError, EOFError, zlib.error) as error:
-            saved = state.get("mujoco")
+            saved, installed = state.get("mujoco"), _mujoco_version()
+            if saved is not None and saved == installed:
+                raise  # the same MuJoCo wrote it: not a version mismatch, a bug to see whole
             writer = f"MuJoCo {saved}" if saved else "a MuJoCo whose version it does not record (written before 2026-12-04)"
             raise EnvStateError(
                 f"the envs' saved mid-episode state cannot be read here ({type(error).__name__}: {error}); it was written "
-                f"with {writer} and this process has MuJoCo {_mujoco_version() or '(not loaded)'}: install the version "
-                "that wrote it (pip install mujoco==<version>) to continue its episodes exactly"
+                f"with {writer} and this process has MuJoCo {installed or '(not loaded)'}: install the version that "
+                f"wrote it (pip install mujoco=={saved or '<version>'}; a harness run's result.json or the constraints.txt "
+                "of its commit names it) to continue its episodes exactly"
             ) from error
         if chain != [type(layer).__qualname__ for layer in layers]:
             return False

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,10 @@ from sb3_pearl.evaluation.meta_test import MetaTestResult
 VELOCITY_KEY = "x_velocity"  # the forward velocity in gymnasium's MuJoCo info dicts
 TARGET_KEY = "velocity"  # the target velocity in a velocity family's task dict
 REWARD_KEY = "reward_forward"  # -|v - v*| per step: recorded with the velocity so the two can be checked against each other
+
+
+class TrackingError(ValueError):
+    """Input the split cannot be made on (not a velocity family, no trace, not a finished harness run)."""
 
 
 def velocity_tracking(
@@ -60,7 +65,7 @@ def velocity_tracking(
             continue
         task = int(trace["task"])
         if target_key not in result.tasks[task]:
-            raise ValueError(
+            raise TrackingError(
                 f"velocity_tracking: task {task} has no {target_key!r} entry ({result.tasks[task]}): not a velocity family"
             )
         target = float(result.tasks[task][target_key])
@@ -69,7 +74,7 @@ def velocity_tracking(
             (task, target, float(v.mean()), float(np.abs(v - target).mean()), abs(float(v.mean()) - target), float(v.std()))
         )
     if not per_traj:
-        raise ValueError(f"velocity_tracking: no trajectory with k >= {min_k} has a {velocity_key!r} trace")
+        raise TrackingError(f"velocity_tracking: no trajectory with k >= {min_k} has a {velocity_key!r} trace")
     table = np.array([row[1:] for row in per_traj])  # (trajectories, 5): target, mean v, per-step, mean-speed, std
     tasks = []
     for task in sorted({row[0] for row in per_traj}):
@@ -117,9 +122,9 @@ def rerun_competence(run: str | Path, n_tasks: int | None = None) -> MetaTestRes
     record = json.loads((folder / "result.json").read_text())
     settings = (record.get("competence") or {}).get("settings")
     if not settings or "eval_seed" not in record:
-        raise ValueError(f"{folder}/result.json has no competence settings or eval_seed: not a finished harness run")
+        raise TrackingError(f"{folder}/result.json has no competence settings or eval_seed: not a finished harness run")
     env = gym.make(env_id, **env_kwargs)
-    model = load_model(model_path, env, device="cpu")
+    model = load_model(model_path, env, device=str(record.get("device", "cpu")))  # where its competence was measured
     tasks = list(model.train_tasks)[: int(n_tasks or settings["n_tasks"])]
     try:
         return run_meta_test(model, env, tasks, settings, int(record["eval_seed"]), [VELOCITY_KEY, REWARD_KEY])
@@ -127,8 +132,28 @@ def rerun_competence(run: str | Path, n_tasks: int | None = None) -> MetaTestRes
         env.close()
 
 
+def committed_per_step_error(run: str | Path) -> float | None:
+    """
+    The per-step velocity error a harness run's result.json holds (its competence criterion on ``reward_forward``).
+
+    :param run: the run folder
+    :return: the value, None when the record has none
+    """
+    record = json.loads((Path(run) / "result.json").read_text())
+    for criterion in (record.get("competence") or {}).get("criteria") or []:
+        if criterion.get("key") == REWARD_KEY and criterion.get("value") is not None:
+            return float(criterion["value"])
+    return None
+
+
 def format_tracking(name: str, tracking: Mapping[str, Any]) -> str:
-    """A text table of :func:`velocity_tracking`: one line per task, then the means and the fitted line."""
+    """
+    A text table of :func:`velocity_tracking`: one line per task, then the means and the fitted line.
+
+    :param name: the heading (the run folder)
+    :param tracking: :func:`velocity_tracking`'s result
+    :return: the table
+    """
     lines = [
         f"{name}: {tracking['n_trajectories']} trajectories (k >= {tracking['min_k']})",
         f"{'task':>5} {'target':>7} {'mean v':>7} {'per-step err':>13} {'mean-speed err':>15} {'oscillation':>12}",
@@ -172,6 +197,7 @@ def plot_tracking(runs: Mapping[str, Mapping[str, Any]], path: str | Path, title
 
 
 def parser() -> argparse.ArgumentParser:
+    """The command line of :func:`main`."""
     p = argparse.ArgumentParser(prog="python -m sb3_pearl.evaluation.tracking", description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="harness run folders (result.json + model.zip) of a velocity family")
     p.add_argument("--n-tasks", type=int, default=None, help="training tasks (default: those of the competence check)")
@@ -196,16 +222,23 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
     for run in args.runs:
         try:
             results[run] = velocity_tracking(rerun_competence(run, args.n_tasks))
-        except (RunFolderError, ValueError) as error:
+        except (RunFolderError, TrackingError) as error:
             p.error(f"{run}: {error}")
+        committed = committed_per_step_error(run) if args.n_tasks is None else None
+        results[run]["committed_per_step_error"] = committed
+        if committed is not None and not np.isclose(results[run]["per_step_error"], committed, rtol=1e-6, atol=1e-9):
+            print(
+                f"warning: {run}: the rerun's per-step error {results[run]['per_step_error']:.6f} is not result.json's "
+                f"{committed:.6f} (another machine, device or package versions): the split describes other trajectories",
+                file=sys.stderr,
+            )
         if not args.json:
             print(format_tracking(run, results[run]), flush=True)
     if args.json:
         print(json.dumps(results, indent=1))
     if args.plot:
-        plot_tracking(
-            {Path(run).parent.parent.name + " " + Path(run).name: t for run, t in results.items()}, args.plot, args.title
-        )
+        names = {run: " ".join(Path(run).parts[-3:]) for run in results}  # <family> <variant> seed<N>
+        plot_tracking({names[run]: tracking for run, tracking in results.items()}, args.plot, args.title)
     return results
 
 
