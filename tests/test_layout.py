@@ -16,7 +16,7 @@ import pytest
 from sb3_pearl import PEARL, PEARLPlus
 
 PACKAGE = Path(__file__).resolve().parent.parent / "sb3_pearl"
-TOOLS = ("zoo", "reproduce", "plots", "demo", "diagnose", "train", "enjoy")
+TOOLS = ("zoo", "reproduce", "plots", "demo", "diagnose", "tracking", "train", "enjoy")
 RANK = {
     "envs": 0,  # a family is usable as a plain Gymnasium env
     "config": 0,  # YAML data

@@ -10,7 +10,7 @@ import pytest
 
 from sb3_pearl import PEARLPlus
 from sb3_pearl.evaluation.meta_test import MetaTestResult
-from sb3_pearl.evaluation.tracking import main, rerun_competence, velocity_tracking
+from sb3_pearl.tracking import main, rerun_competence, velocity_tracking
 from tests.conftest import TINY
 
 

@@ -14,7 +14,7 @@ trajectory's mean speed on its target tells the two causes of a mean-speed error
 large error is a task not inferred for some tasks, a slope well below 1 with the mean speed still ordered by
 the target is inference that works and a gait that does not reach the speed.
 
-``python -m sb3_pearl.evaluation.tracking RUN [RUN ...] [--plot out.png]`` reruns each harness run's competence
+``python -m sb3_pearl.tracking RUN [RUN ...] [--plot out.png]`` reruns each harness run's competence
 meta-test (its training tasks, settings and eval seed from ``result.json``: the same trajectories its competence
 value was measured on) with the velocity trace, and prints the split per task; ``--plot`` draws each
 trajectory's mean speed against its target.
@@ -198,7 +198,7 @@ def plot_tracking(runs: Mapping[str, Mapping[str, Any]], path: str | Path, title
 
 def parser() -> argparse.ArgumentParser:
     """The command line of :func:`main`."""
-    p = argparse.ArgumentParser(prog="python -m sb3_pearl.evaluation.tracking", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m sb3_pearl.tracking", description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="harness run folders (result.json + model.zip) of a velocity family")
     p.add_argument("--n-tasks", type=int, default=None, help="training tasks (default: those of the competence check)")
     p.add_argument("--plot", default=None, metavar="PNG", help="draw mean speed against target to this PNG")
