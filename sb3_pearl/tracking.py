@@ -15,8 +15,9 @@ large error is a task not inferred for some tasks, a slope well below 1 with the
 the target is inference that works and a gait that does not reach the speed.
 
 ``python -m sb3_pearl.tracking RUN [RUN ...] [--plot out.png]`` reruns each harness run's competence
-meta-test (its training tasks, settings and eval seed from ``result.json``: the same trajectories its competence
-value was measured on) with the velocity trace, and prints the split per task; ``--plot`` draws each
+meta-test (its training tasks, settings and eval seed from ``result.json``: the trajectories its competence value
+was measured on, where the machine and package versions are the same; it warns when the per-step error differs) with
+the velocity trace, and prints the split per task; ``--plot`` draws each
 trajectory's mean speed against its target.
 """
 
@@ -32,6 +33,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from sb3_pearl.common.checks import positive_int
 from sb3_pearl.evaluation.held_out import run_meta_test
 from sb3_pearl.evaluation.meta_test import MetaTestResult
 
@@ -70,9 +72,8 @@ def velocity_tracking(
             )
         target = float(result.tasks[task][target_key])
         v = np.asarray(trace[velocity_key], dtype=np.float64)  # (steps,)
-        per_traj.append(
-            (task, target, float(v.mean()), float(np.abs(v - target).mean()), abs(float(v.mean()) - target), float(v.std()))
-        )
+        mean_v = float(v.mean())
+        per_traj.append((task, target, mean_v, float(np.abs(v - target).mean()), abs(mean_v - target), float(v.std())))
     if not per_traj:
         raise TrackingError(f"velocity_tracking: no trajectory with k >= {min_k} has a {velocity_key!r} trace")
     table = np.array([row[1:] for row in per_traj])  # (trajectories, 5): target, mean v, per-step, mean-speed, std
@@ -200,7 +201,7 @@ def parser() -> argparse.ArgumentParser:
     """The command line of :func:`main`."""
     p = argparse.ArgumentParser(prog="python -m sb3_pearl.tracking", description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="harness run folders (result.json + model.zip) of a velocity family")
-    p.add_argument("--n-tasks", type=int, default=None, help="training tasks (default: those of the competence check)")
+    p.add_argument("--n-tasks", type=positive_int, default=None, help="training tasks (default: the competence check's)")
     p.add_argument("--plot", default=None, metavar="PNG", help="draw mean speed against target to this PNG")
     p.add_argument("--title", default="", help="title of the figure")
     p.add_argument("--json", action="store_true", help="print JSON instead of the tables")
