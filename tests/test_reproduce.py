@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any
@@ -332,7 +333,8 @@ def test_presets_reject_unknown_names(args: tuple[str, str, str], message: str) 
 def test_walker_reference_family_reduces_only_the_rows_of_the_reference_configuration() -> None:
     """walker2d-vel-ref at `cpu` is the paper preset's Walker2D-vel PEARL (the reference's) with cheetah-vel's one cut."""
     experiment = get_experiment("pearl-reference")
-    assert [f.name for f in experiment.families] == ["cheetah-vel", "walker2d-vel-long", "walker2d-vel-ref"]
+    names = ["cheetah-vel", "walker2d-vel-long", "walker2d-vel-ref", "walker2d-vel-ref-long"]
+    assert [f.name for f in experiment.families] == names
     ref = next(f for f in experiment.families if f.name == "walker2d-vel-ref")
     assert ref.env_id == "Walker2dVelMeta-v0" and ref.competence == get_family("walker2d-vel").competence
     cpu, paper = load_budget("cpu", "walker2d-vel-ref", "pearl"), load_budget("paper", "walker2d-vel", "pearl")
@@ -341,6 +343,12 @@ def test_walker_reference_family_reduces_only_the_rows_of_the_reference_configur
     assert differs == {"batch_size"} and cpu["kwargs"]["batch_size"] == cheetah_cpu["kwargs"]["batch_size"] == 32
     assert paper["kwargs"]["batch_size"] == cheetah_paper["kwargs"]["batch_size"] == 256
     assert cpu["n_timesteps"] == 500_000 and cpu["curve"]["every"] == 20_000
+    # walker2d-vel-ref-long: the same entry, only trained three times longer (its first 500k steps are walker2d-vel-ref's)
+    long = load_budget("cpu", "walker2d-vel-ref-long", "pearl")
+    assert {k: v for k, v in long.items() if k != "n_timesteps"} == {k: v for k, v in cpu.items() if k != "n_timesteps"}
+    assert long["n_timesteps"] == 1_500_000
+    ref_long = next(f for f in experiment.families if f.name == "walker2d-vel-ref-long")
+    assert dataclasses.replace(ref_long, name=ref.name, title=ref.title, budget_family=ref.budget_family) == ref
 
 
 def test_preset_entry_validation() -> None:
