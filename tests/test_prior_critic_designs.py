@@ -276,6 +276,31 @@ def _run(rel: float, rank: float, gap_return: float, gap_violation: float) -> di
     }
 
 
+def test_prior_critic_table_pairs_each_seed_with_its_bar_run() -> None:
+    """A variant bar (Walker2D-vel: Fine-Tune) pairs seed with seed; seeds without a bar run have no row (not a row of n/a)."""
+    from sb3_pearl.experiments import get_experiment
+    from sb3_pearl.reproduce.prior_report import prior_critic_table
+
+    def measured(return_: float, violation: float, rel: float = 0.5) -> dict[str, Any]:
+        model = {"return": return_, "violation": violation}
+        return {
+            "prior_critic": {
+                "calibration": {"bias": 1.0, "relative_error": rel, "rank_corr": 0.1},
+                "prior_optimality": {"train": {"model": model}, "test": {"model": model}},
+            }
+        }
+
+    table1 = get_experiment("table1")
+    group = {"pearl": {0: measured(-10.0, 0.5), 1: measured(-30.0, 0.7)}, "finetune": {0: measured(-4.0, 0.25)}}
+    lines = prior_critic_table(table1, "walker2d-vel", group)
+    rows = [line for line in lines if line.startswith("| PEARL |")]
+    # seed 1 has no Fine-Tune run: only seed 0 is paired, return gap -10 - (-4), violation gap 25 points
+    assert rows == ["| PEARL | 1.0 | 0.50 | 0.10 | n/a / n/a | -6.0 | 25.0 | -6.0 | 25.0 | 1 |"]
+    # pearl-reference's Walker families declare the Fine-Tune bar but run no Fine-Tune: no table at all
+    reference = get_experiment("pearl-reference")
+    assert prior_critic_table(reference, "walker2d-vel-ref", {"pearl": {0: measured(-10.0, 0.5)}}) == []
+
+
 def test_the_selection_rule_as_written() -> None:
     """docs/pearl.md: calibrated designs first (rel. error < 0.25, rank corr. > 0.5), ranked by the train return gap,
     ties within 0.5 by the lower violation gap; fewer than two calibrated: the best of the others fill the places."""

@@ -115,11 +115,11 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
             for s, r in group[variant].items()
             if isinstance(r.get("prior_critic"), dict) and "error" not in r["prior_critic"]
         }
-        if not runs:
-            continue
         pairs = {s: None if bar_runs is None else bar_runs.get(s) for s in runs}
         if bar_runs is not None:
             runs = {s: r for s, r in runs.items() if pairs[s] is not None}
+        if not runs:  # nothing measured, or no seed with its bar's run (pearl-reference has no Fine-Tune): no row of n/a
+            continue
         calibration = [calibration_of(r) for r in runs.values()]
         train = [run_gaps(r, pairs[s], "train") for s, r in runs.items()]
         test = [run_gaps(r, pairs[s], "test") for s, r in runs.items()]
