@@ -508,6 +508,25 @@ def test_curve_table_and_figure_say_where_a_run_became_competent(tmp_path: Path)
     assert plot_curves(experiment, cheetah, tmp_path / "cheetah.png")
 
 
+def test_curve_figure_panels_and_env_step_ticks() -> None:
+    """The cheetah never falls: no violation panel; every figure shows the prior policy's return; ticks read 200k, 1.5M."""
+    from sb3_pearl.reproduce.figures import curve_panels, env_steps_label
+
+    experiment = get_experiment("pearl-reference")
+    walker, cheetah = experiment.family("walker2d-vel-ref"), experiment.family("cheetah-vel")
+    checked = list(enumerate(walker.competence))
+    assert [p[0] for p in curve_panels(walker, checked)] == [
+        "reference_return", "k0_return", "k0_violation", "criterion_0", "criterion_1"
+    ]  # fmt: skip
+    assert [p[0] for p in curve_panels(cheetah, [(0, cheetah.competence[0])])] == [
+        "reference_return", "k0_return", "criterion_0"
+    ]  # fmt: skip
+    assert curve_panels(walker, checked)[3][3] == walker.competence[0].threshold == 0.3
+    assert [env_steps_label(x) for x in (0, 500, 20_000, 200_000, 1_000_000, 1_500_000)] == [
+        "0", "500", "20k", "200k", "1M", "1.5M"
+    ]  # fmt: skip
+
+
 def test_the_report_draws_runs_in_progress_and_leaves_out_folders_that_are_not(tmp_path: Path) -> None:
     """Part-way runs (checkpoint + curve.csv, no result.json) get a section; stray or unreadable folders do not crash it."""
     from sb3_pearl.reproduce.cells import load_partway_curves

@@ -124,6 +124,7 @@ HALF_CHEETAH_VEL = Family(
     title="HalfCheetah-Vel (PEARL's cheetah-vel)",
     competence=(_VELOCITY_ERROR,),
     return_margin=10.0,
+    has_violations=False,  # the cheetah never falls: Gymnasium's HalfCheetah has no unhealthy state
     published_curve=(
         PublishedPoint(
             780_000,

@@ -131,6 +131,8 @@ class Family:
     :param prior_bar: the task-independent bar of the prior-optimality gap (None: the family has none)
     :param published_curve: points of published learning curves of PEARL on this family (``reproduce report`` draws
         them on the learning-curve figures and lists them under the curve tables)
+    :param has_violations: whether the family's env can report a safety violation (``info["cost"]``: a fall, a crash);
+        False for HalfCheetah-Vel, which never terminates, so that figures leave out its always-zero violation rate
     """
 
     name: str
@@ -144,6 +146,7 @@ class Family:
     return_margin: float = 1.0
     prior_bar: PriorBar | None = None
     published_curve: tuple[PublishedPoint, ...] = ()
+    has_violations: bool = True
 
     def __post_init__(self) -> None:
         check_name(self.name, "family")

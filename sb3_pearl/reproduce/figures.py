@@ -25,9 +25,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.ticker import MaxNLocator  # noqa: E402
+from matplotlib.ticker import FuncFormatter, MaxNLocator  # noqa: E402
 
-from sb3_pearl.experiments.spec import Experiment  # noqa: E402
+from sb3_pearl.experiments.spec import Experiment, Family  # noqa: E402
 from sb3_pearl.reproduce.cells import cell_stats, last_k, seed_values  # noqa: E402
 from sb3_pearl.reproduce.curve import curve_value  # noqa: E402
 
@@ -142,6 +142,39 @@ def _wrap(text: str, width: int) -> str:
     return "\n".join(textwrap.wrap(text, width))
 
 
+def env_steps_label(steps: float, _position: object = None) -> str:
+    """An env-step tick: ``0``, ``200k``, ``1.5M`` (full numbers overlap on a 500k-1.5M axis)."""
+    if abs(steps) >= 1e6:
+        return f"{steps / 1e6:g}M"
+    if abs(steps) >= 1e3:
+        return f"{steps / 1e3:g}k"
+    return f"{steps:g}"
+
+
+def curve_panels(family: Family, checked: list[tuple[int, Any]]) -> list[tuple[str, float, str, float | None]]:
+    """
+    The panels of a learning-curve figure: (curve column, scale, axis label, competence bar).
+
+    The reference's metric, the prior policy's (k = 0) return, its violation rate where the family can violate
+    (not HalfCheetah-Vel), then each competence criterion the curves checked.
+
+    :param family: the runs' family
+    :param checked: (index, criterion) of the competence criteria the curves hold values of
+    :return: one tuple a panel
+    """
+    panels: list[tuple[str, float, str, float | None]] = [
+        ("reference_return", 1.0, "return of the last trajectory (reference protocol)", None),
+        ("k0_return", 1.0, "k = 0 return (prior z)", None),
+    ]
+    if family.has_violations:
+        panels.append(("k0_violation", 100.0, "k = 0 violation rate [%]", None))
+    panels += [
+        (f"criterion_{index}", 1.0, _wrap(f"train: {criterion.description}", 45), criterion.threshold)
+        for index, criterion in checked
+    ]
+    return panels
+
+
 def plot_curves(
     experiment: Experiment,
     group: Mapping[str, Mapping[int, dict[str, Any]]],
@@ -153,8 +186,9 @@ def plot_curves(
     The learning curves on the test tasks (result.json ``curve``, ``sb3_pearl/reproduce/curve.py``) of one group.
 
     First panel: the reference's metric (mean return of the last evaluation trajectory) against env steps, mean over
-    seeds with the seeds' range shaded; second: the prior policy's (k = 0) violation rate; then one panel per competence
-    criterion of the family (on training tasks, its bar dashed), when the curve checks competence.
+    seeds with the seeds' range shaded; then the prior policy's (k = 0) return and, where the family can violate, its
+    violation rate; then one panel per competence criterion of the family (on training tasks, its bar dashed), when the
+    curve checks competence (:func:`curve_panels`).
 
     :param experiment: the experiment (variant order and labels)
     :param group: variant -> seed -> result
@@ -177,15 +211,7 @@ def plot_curves(
         for index, criterion in enumerate(competence)
         if any(math.isfinite(curve_value(row, f"criterion_{index}")) for runs in curves.values() for row in runs[0])
     ]
-    # (curve column, scale, axis label, competence bar)
-    panels: list[tuple[str, float, str, float | None]] = [
-        ("reference_return", 1.0, "return of the last trajectory (reference protocol)", None),
-        ("k0_violation", 100.0, "k = 0 violation rate [%]", None),
-    ]
-    panels += [
-        (f"criterion_{index}", 1.0, _wrap(f"train: {criterion.description}", 45), criterion.threshold)
-        for index, criterion in checked
-    ]
+    panels = curve_panels(experiment.family(family_name), checked)
     n_rows = math.ceil(len(panels) / 2)  # two panels a row
     fig, axes = plt.subplots(n_rows, 2, figsize=(10, 4 * n_rows), squeeze=False)
     for ax in axes.flat[len(panels) :]:
@@ -215,6 +241,7 @@ def plot_curves(
         ax.set_xlim(0, right)
     for ax, (_, _, ylabel, bar) in zip(axes.flat, panels):
         ax.set_xlabel("env steps")
+        ax.xaxis.set_major_formatter(FuncFormatter(env_steps_label))
         ax.set_ylabel(ylabel, fontsize=9)
         if bar is not None:
             ax.axhline(bar, color="black", linestyle="--", linewidth=1, label=f"competence bar ({bar:g})")
