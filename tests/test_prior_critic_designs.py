@@ -277,7 +277,8 @@ def _run(rel: float, rank: float, gap_return: float, gap_violation: float) -> di
 
 
 def test_prior_critic_table_pairs_each_seed_with_its_bar_run() -> None:
-    """A variant bar (Walker2D-vel: Fine-Tune) pairs seed with seed; seeds without a bar run have no row (not a row of n/a)."""
+    """A variant bar (Walker2D-vel: Fine-Tune) pairs seed with seed: a seed without its bar's run is left out of its
+    variant's row, and a variant with no paired seed has no row (not a row of n/a)."""
     from sb3_pearl.experiments import get_experiment
     from sb3_pearl.reproduce.prior_report import prior_critic_table
 

@@ -504,6 +504,7 @@ def test_curve_table_and_figure_say_where_a_run_became_competent(tmp_path: Path)
     assert not any(line.startswith("Published") for line in curve_table(experiment, group))  # none for Walker
     cheetah = {"pearl": {0: {"family": "cheetah-vel", "curve": curves[0]}}}
     lines = curve_table(experiment, cheetah)
+    assert lines[2].startswith("| PEARL | 0 | 60000 | 60.0 | -1.0 | n/a | 40000 |")  # the cheetah cannot violate
     assert lines[-2] == "" and lines[-1].startswith("Published: -44 at 780,000 env steps, an independent PyTorch reimpl")
     assert plot_curves(experiment, cheetah, tmp_path / "cheetah.png")
 

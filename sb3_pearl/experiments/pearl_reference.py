@@ -59,7 +59,10 @@ WALKER2D_VEL_REF_LONG: Family = dataclasses.replace(
 
 PEARL_REFERENCE = Experiment(
     name="pearl-reference",
-    title="PEARL's learning curves to 500k env steps: HalfCheetah-Vel (the reference configuration), Walker2D-vel",
+    title=(
+        "PEARL's learning curves to 500k env steps (walker2d-vel-ref-long: 1.5M): HalfCheetah-Vel (the reference "
+        "configuration), Walker2D-vel"
+    ),
     description=(
         "PEARL on HalfCheetahVelMeta-v0 with the PEARL reference implementation's cheetah-vel configuration (reduced "
         "for a CPU core at the cpu preset, docs/reproduce.md), and on Walker2D-vel with the cpu preset's networks "

@@ -188,7 +188,7 @@ def curve_table(experiment: Any, group: Any) -> list[str]:
     """
     Each run's learning curve (result.json ``curve``) in one row, for ``reproduce report``: its last point, and where
     it checks competence, the first env step at which the model was competent (every criterion passed) and the best
-    value of each criterion.
+    value of each criterion. The k = 0 violation rate is n/a on a family that cannot violate (HalfCheetah-Vel).
 
     :param experiment: the experiment (variant order and labels)
     :param group: variant -> seed -> result
@@ -205,11 +205,13 @@ def curve_table(experiment: Any, group: Any) -> list[str]:
             if not rows:
                 continue
             last = rows[-1]
+            family = experiment.family(result["family"])
+            violation = f"{100 * curve_value(last, 'k0_violation'):.1f}" if family.has_violations else "n/a"
             checked = [row for row in rows if math.isfinite(curve_value(row, "competent"))]
             first = next((int(row["env_steps"]) for row in checked if curve_value(row, "competent") == 1.0), None)
             competent = "not checked" if not checked else (f"{first}" if first is not None else "not competent")
             criteria = []
-            for index, criterion in enumerate(experiment.family(result["family"]).competence):
+            for index, criterion in enumerate(family.competence):
                 values = [curve_value(row, f"criterion_{index}") for row in checked]
                 values = [value for value in values if math.isfinite(value)]
                 if values:
@@ -218,7 +220,7 @@ def curve_table(experiment: Any, group: Any) -> list[str]:
                     criteria.append(f"{values[-1]:.3g} ({best:.3g}; bar {bar} {criterion.threshold:g})")
             lines.append(
                 f"| {variant.label} | {seed} | {int(last['env_steps'])} | {curve_value(last, 'reference_return'):.1f} | "
-                f"{curve_value(last, 'k0_return'):.1f} | {100 * curve_value(last, 'k0_violation'):.1f} | {competent} | "
+                f"{curve_value(last, 'k0_return'):.1f} | {violation} | {competent} | "
                 f"{'; '.join(criteria) or 'n/a'} |"
             )
     families = {result["family"] for runs in group.values() for result in runs.values()}

@@ -17,7 +17,7 @@ import itertools
 import math
 import os
 import textwrap
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import matplotlib
@@ -27,7 +27,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import FuncFormatter, MaxNLocator  # noqa: E402
 
-from sb3_pearl.experiments.spec import Experiment, Family  # noqa: E402
+from sb3_pearl.experiments.spec import Criterion, Experiment, Family  # noqa: E402
 from sb3_pearl.reproduce.cells import cell_stats, last_k, seed_values  # noqa: E402
 from sb3_pearl.reproduce.curve import curve_value  # noqa: E402
 
@@ -143,7 +143,13 @@ def _wrap(text: str, width: int) -> str:
 
 
 def env_steps_label(steps: float, _position: object = None) -> str:
-    """An env-step tick: ``0``, ``200k``, ``1.5M`` (full numbers overlap on a 500k-1.5M axis)."""
+    """
+    An env-step tick: ``0``, ``200k``, ``1.5M`` (full numbers overlap on a 500k-1.5M axis).
+
+    :param steps: the tick's env steps
+    :param _position: the tick's index (matplotlib's ``FuncFormatter`` passes it; unused)
+    :return: the label
+    """
     if abs(steps) >= 1e6:
         return f"{steps / 1e6:g}M"
     if abs(steps) >= 1e3:
@@ -151,7 +157,7 @@ def env_steps_label(steps: float, _position: object = None) -> str:
     return f"{steps:g}"
 
 
-def curve_panels(family: Family, checked: list[tuple[int, Any]]) -> list[tuple[str, float, str, float | None]]:
+def curve_panels(family: Family, checked: Sequence[tuple[int, Criterion]]) -> list[tuple[str, float, str, float | None]]:
     """
     The panels of a learning-curve figure: (curve column, scale, axis label, competence bar).
 
@@ -205,13 +211,14 @@ def plot_curves(
     if not curves:
         return False
     family_name = next(r["family"] for runs in group.values() for r in runs.values() if r.get("curve"))
-    competence = experiment.family(family_name).competence
+    family = experiment.family(family_name)
+    competence = family.competence
     checked = [  # (index in the family's criteria, criterion) of the criteria the curves hold values of
         (index, criterion)
         for index, criterion in enumerate(competence)
         if any(math.isfinite(curve_value(row, f"criterion_{index}")) for runs in curves.values() for row in runs[0])
     ]
-    panels = curve_panels(experiment.family(family_name), checked)
+    panels = curve_panels(family, checked)
     n_rows = math.ceil(len(panels) / 2)  # two panels a row
     fig, axes = plt.subplots(n_rows, 2, figsize=(10, 4 * n_rows), squeeze=False)
     for ax in axes.flat[len(panels) :]:
@@ -234,7 +241,7 @@ def plot_curves(
             ax.plot(steps, values.mean(axis=0), color=f"C{color}", label=label)
             if len(runs) > 1:
                 ax.fill_between(steps, values.min(axis=0), values.max(axis=0), color=f"C{color}", alpha=0.2)
-    for point in experiment.family(family_name).published_curve:  # beside ours, at its own env steps
+    for point in family.published_curve:  # beside ours, at its own env steps
         axes.flat[0].plot(point.env_steps, point.value, "k*", markersize=10, label=f"published: {point.value:g}")
     right = max(ax.get_xlim()[1] for ax in axes.flat[: len(panels)])
     for ax in axes.flat[: len(panels)]:  # one env-step axis for every panel (a published point may lie beyond ours)
