@@ -23,7 +23,7 @@ Walker row (issue 20, run 1). It was not by 500k (velocity error 0.65 m/s, still
 The fourth family, ``walker2d-vel-ref-long``, is walker2d-vel-ref unchanged but trained to 1.5M env steps: the
 tracking diagnostic found the walker too slow on the fast targets rather than in the wrong task (a locomotion skill
 still being learnt), and a straight line through walker2d-vel-ref's curve crosses the 0.3 m/s bar near 0.9M env steps.
-~7.5 core-hours a seed on the Xeon, so it resumes across sessions (``--family walker2d-vel-ref-long --seeds 0``). Its
+~8.5 core-hours a seed on the Xeon, so it resumes across sessions (``--family walker2d-vel-ref-long --seeds 0``). Its
 first 500k env steps are walker2d-vel-ref's (same configuration and seed): on the same CPU model its curve repeats
 walker2d-vel-ref's point by point, a free check of the harness' determinism.
 """
