@@ -277,8 +277,8 @@ def _run(rel: float, rank: float, gap_return: float, gap_violation: float) -> di
 
 
 def test_prior_critic_table_pairs_each_seed_with_its_bar_run() -> None:
-    """A variant bar (Walker2D-vel: Fine-Tune) pairs seed with seed: a seed without its bar's run is left out of its
-    variant's row, and a variant with no paired seed has no row (not a row of n/a)."""
+    """A variant bar (Walker2D-vel: Fine-Tune) pairs seed with seed for the gaps; the calibration uses every measured run,
+    so an experiment without Fine-Tune runs still shows its critics' calibration (its gaps n/a)."""
     from sb3_pearl.experiments import get_experiment
     from sb3_pearl.reproduce.prior_report import prior_critic_table
 
@@ -292,14 +292,22 @@ def test_prior_critic_table_pairs_each_seed_with_its_bar_run() -> None:
         }
 
     table1 = get_experiment("table1")
-    group = {"pearl": {0: measured(-10.0, 0.5), 1: measured(-30.0, 0.7)}, "finetune": {0: measured(-4.0, 0.25)}}
-    lines = prior_critic_table(table1, "walker2d-vel", group)
-    rows = [line for line in lines if line.startswith("| PEARL |")]
-    # seed 1 has no Fine-Tune run: only seed 0 is paired, return gap -10 - (-4), violation gap 25 points
-    assert rows == ["| PEARL | 1.0 | 0.50 | 0.10 | n/a / n/a | -6.0 | 25.0 | -6.0 | 25.0 | 1 |"]
-    # pearl-reference's Walker families declare the Fine-Tune bar but run no Fine-Tune: no table at all
+    group = {"pearl": {0: measured(-10.0, 0.5), 1: measured(-30.0, 0.7, rel=0.9)}, "finetune": {0: measured(-4.0, 0.25)}}
+    # calibration over both seeds (median rel. error of 0.5 and 0.9); seed 1 has no Fine-Tune run, so the gaps are
+    # seed 0's alone: return -10 - (-4), violation 25 points
+    rows = [line for line in prior_critic_table(table1, "walker2d-vel", group) if line.startswith("| PEARL |")]
+    assert rows == ["| PEARL | 1.0 | 0.70 | 0.10 | n/a / n/a | -6.0 | 25.0 | -6.0 | 25.0 | 2 (1 with the bar's run) |"]
+    group["finetune"][1] = measured(-20.0, 0.5)  # both paired: gaps are means over the seeds, -6 and -10
+    rows = [line for line in prior_critic_table(table1, "walker2d-vel", group) if line.startswith("| PEARL |")]
+    assert rows == ["| PEARL | 1.0 | 0.70 | 0.10 | n/a / n/a | -8.0 | 22.5 | -8.0 | 22.5 | 2 |"]
+    # pearl-reference's Walker families declare the Fine-Tune bar but run no Fine-Tune: calibration only
     reference = get_experiment("pearl-reference")
-    assert prior_critic_table(reference, "walker2d-vel-ref", {"pearl": {0: measured(-10.0, 0.5)}}) == []
+    lines = prior_critic_table(reference, "walker2d-vel-ref", {"pearl": {0: measured(-10.0, 0.5)}})
+    assert lines[-1] == "| PEARL | 1.0 | 0.50 | 0.10 | n/a / n/a | n/a | n/a | n/a | n/a | 1 (0 with the bar's run) |"
+    # Highway-Merge declares no bar: the calibration, every gap n/a
+    lines = prior_critic_table(table1, "highway-merge", {"pearlplus": {0: measured(-10.0, 0.5, rel=0.2)}})
+    assert "no bar is declared for this family" in lines[0]
+    assert lines[-1] == "| PEARL+ (alpha 0.1) | 1.0 | 0.20 | 0.10 | n/a / n/a | n/a | n/a | n/a | n/a | 1 |"
 
 
 def test_the_selection_rule_as_written() -> None:

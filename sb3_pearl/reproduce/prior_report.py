@@ -101,7 +101,13 @@ def _bar_runs(experiment: Experiment, family: str, group: Group) -> Mapping[int,
 
 
 def prior_critic_table(experiment: Experiment, family: str, group: Group) -> list[str]:
-    """Per variant: the calibration (medians over seeds, mean bias) and the prior-optimality gaps (means over seeds)."""
+    """
+    Per variant: the calibration (medians over seeds, mean bias) and the prior-optimality gaps (means over seeds).
+
+    The calibration is over every measured run. Where the bar is a variant (Walker2D-vel: Fine-Tune), the gaps are over
+    the seeds that also have the bar's run (n/a where none has: experiments without Fine-Tune runs); a family without a
+    bar (Highway-Merge) shows its critics' calibration with the gaps n/a.
+    """
     bar = experiment.family(family).prior_bar
     bar_runs = _bar_runs(experiment, family, group)
     lines = [
@@ -115,14 +121,17 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
             for s, r in group[variant].items()
             if isinstance(r.get("prior_critic"), dict) and "error" not in r["prior_critic"]
         }
-        pairs = {s: None if bar_runs is None else bar_runs.get(s) for s in runs}
-        if bar_runs is not None:
-            runs = {s: r for s, r in runs.items() if pairs[s] is not None}
-        if not runs:  # nothing measured, or no seed with its bar's run (pearl-reference has no Fine-Tune): no row of n/a
+        if not runs:
             continue
+        # the calibration needs only the run; a gap needs the bar's run of the same seed where the bar is a variant
+        pairs = {s: None if bar_runs is None else bar_runs.get(s) for s in runs}
+        if bar is None:
+            paired: Mapping[int, dict[str, Any]] = {}
+        else:
+            paired = runs if bar_runs is None else {s: r for s, r in runs.items() if pairs[s] is not None}
         calibration = [calibration_of(r) for r in runs.values()]
-        train = [run_gaps(r, pairs[s], "train") for s, r in runs.items()]
-        test = [run_gaps(r, pairs[s], "test") for s, r in runs.items()]
+        train = [run_gaps(r, pairs[s], "train") for s, r in paired.items()]
+        test = [run_gaps(r, pairs[s], "test") for s, r in paired.items()]
         cells = [
             _fmt(mean_finite([c[0] for c in calibration]), 1),
             _fmt(median_finite([c[1] for c in calibration])),
@@ -134,14 +143,18 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
             _fmt(mean_finite([g[1] for g in test]), 1, 100),
         ]
         label = experiment.variant(variant).label
-        lines.append(f"| {label} | {' | '.join(cells)} | {len(runs)} |")
-    if len(lines) == 2 or bar is None:
+        seeds = f"{len(runs)}"
+        if bar is not None and len(paired) < len(runs):
+            seeds += f" ({len(paired)} with the bar's run)"
+        lines.append(f"| {label} | {' | '.join(cells)} | {seeds} |")
+    if len(lines) == 2:
         return []
+    bar_text = f"bar: {bar.description}" if bar is not None else "no bar is declared for this family, so the gaps are n/a"
     return [
         f'Prior critic (docs/pearl.md, "Measures"): calibration on training tasks; the task-blind reference predicts each '
         "(z0, task) pair by its z0's bootstrapped return averaged over the tasks (what a task-blind critic fitted "
         "exactly would predict on these rollouts, n/a before measures version 2); prior-optimality gap = the prior "
-        f"policy's k = 0 return / violation rate (points) minus the bar's, bar: {bar.description}.",
+        f"policy's k = 0 return / violation rate (points) minus the bar's; {bar_text}.",
         "",
         *lines,
     ]
