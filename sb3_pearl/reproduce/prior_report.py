@@ -123,15 +123,18 @@ def prior_critic_table(experiment: Experiment, family: str, group: Group) -> lis
         }
         if not runs:
             continue
-        # the calibration needs only the run; a gap needs the bar's run of the same seed where the bar is a variant
-        pairs = {s: None if bar_runs is None else bar_runs.get(s) for s in runs}
+        # the calibration needs only the run; a gap needs the bar: none declared (no gap), scripted (the run's record
+        # holds the gap) or a variant (its run of the same seed)
+        paired: Mapping[int, dict[str, Any]]
         if bar is None:
-            paired: Mapping[int, dict[str, Any]] = {}
+            paired = {}
+        elif bar_runs is None:
+            paired = runs
         else:
-            paired = runs if bar_runs is None else {s: r for s, r in runs.items() if pairs[s] is not None}
+            paired = {s: r for s, r in runs.items() if s in bar_runs}
         calibration = [calibration_of(r) for r in runs.values()]
-        train = [run_gaps(r, pairs[s], "train") for s, r in paired.items()]
-        test = [run_gaps(r, pairs[s], "test") for s, r in paired.items()]
+        train = [run_gaps(r, None if bar_runs is None else bar_runs[s], "train") for s, r in paired.items()]
+        test = [run_gaps(r, None if bar_runs is None else bar_runs[s], "test") for s, r in paired.items()]
         cells = [
             _fmt(mean_finite([c[0] for c in calibration]), 1),
             _fmt(median_finite([c[1] for c in calibration])),
