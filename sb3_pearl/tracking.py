@@ -14,6 +14,11 @@ trajectory's mean speed on its target tells the two causes of a mean-speed error
 large error is a task not inferred for some tasks, a slope well below 1 with the mean speed still ordered by
 the target is inference that works and a gait that does not reach the speed.
 
+Every trajectory starts from rest, so the per-step error also holds the time the policy takes to reach its speed.
+The split *by part of the episode* (``parts``: the per-step error over equal step ranges of the horizon, default
+four) tells a policy that reaches the target late (a large error in the first parts, a small one in the last)
+from one that never reaches it (the same error in every part).
+
 ``python -m sb3_pearl.tracking RUN [RUN ...] [--plot out.png]`` reruns each harness run's competence
 meta-test (its training tasks, settings and eval seed from ``result.json``: the trajectories its competence value
 was measured on, where the machine and package versions are the same; it warns when the per-step error differs) with
@@ -46,22 +51,61 @@ class TrackingError(ValueError):
     """Input the split cannot be made on (not a velocity family, no trace, not a finished harness run)."""
 
 
+def error_by_part(errors: Sequence[np.ndarray], n_parts: int) -> list[dict[str, Any]]:
+    """
+    The per-step error over equal step ranges of the horizon (the longest trajectory), each trajectory weighted once.
+
+    Part ``i`` covers steps ``[floor(i H / n), floor((i + 1) H / n))`` of the horizon ``H``; its error is the mean over
+    the trajectories that reach it of their mean error within it (a trajectory ended early, by a fall, counts only in
+    the parts it reached), so where every trajectory runs the whole horizon and the parts are of equal length the parts
+    average to the per-step error.
+
+    :param errors: per trajectory, its per-step errors ``|v_t - v*|`` (steps,)
+    :param n_parts: number of parts
+    :return: per part: ``first_step``, ``end_step`` (exclusive), ``error`` (None where no trajectory reaches the part)
+        and ``n_trajectories``
+    """
+    if n_parts < 1:
+        raise ValueError(f"error_by_part: n_parts must be >= 1, got {n_parts}")
+    horizon = max(len(e) for e in errors)
+    bounds = [i * horizon // n_parts for i in range(n_parts + 1)]
+    parts = []
+    for first, end in zip(bounds[:-1], bounds[1:]):
+        means = [float(e[first:end].mean()) for e in errors if len(e) > first and end > first]
+        parts.append(
+            {
+                "first_step": first,
+                "end_step": end,
+                "error": float(np.mean(means)) if means else None,
+                "n_trajectories": len(means),
+            }
+        )
+    return parts
+
+
 def velocity_tracking(
-    result: MetaTestResult, min_k: int = 1, velocity_key: str = VELOCITY_KEY, target_key: str = TARGET_KEY
+    result: MetaTestResult,
+    min_k: int = 1,
+    velocity_key: str = VELOCITY_KEY,
+    target_key: str = TARGET_KEY,
+    n_parts: int = 4,
 ) -> dict[str, Any]:
     """
-    Split the per-step velocity error of the trajectories ``k >= min_k`` into the mean-speed error and the oscillation.
+    Split the per-step velocity error of the trajectories ``k >= min_k`` into the mean-speed error and the oscillation,
+    and over parts of the episode.
 
     :param result: a meta-test whose traces hold ``velocity_key`` and whose tasks hold ``target_key``
     :param min_k: first trajectory index counted (1: the posterior trajectories, as the competence criterion)
     :param velocity_key: per-step trace of the forward velocity
     :param target_key: task entry of the target velocity
+    :param n_parts: equal step ranges of the horizon the per-step error is also split over (:func:`error_by_part`)
     :return: ``per_step_error``, ``mean_speed_error``, ``oscillation`` (means over trajectories), ``slope`` and
         ``intercept`` of the least-squares line of mean speed on target (None with fewer than two distinct targets),
-        ``n_trajectories`` and ``tasks`` (per task: target, mean speed and the three errors, averaged over its
-        trajectories)
+        ``n_trajectories``, ``tasks`` (per task: target, mean speed and the three errors, averaged over its
+        trajectories) and ``parts`` (:func:`error_by_part`)
     """
     per_traj: list[tuple[int, float, float, float, float, float]] = []  # task, target, mean v, per-step, mean-speed, std
+    step_errors: list[np.ndarray] = []  # per trajectory: |v_t - v*| (steps,)
     for trace in result.traces:
         if int(trace["k"]) < min_k or not trace.get(velocity_key):
             continue
@@ -73,7 +117,8 @@ def velocity_tracking(
         target = float(result.tasks[task][target_key])
         v = np.asarray(trace[velocity_key], dtype=np.float64)  # (steps,)
         mean_v = float(v.mean())
-        per_traj.append((task, target, mean_v, float(np.abs(v - target).mean()), abs(mean_v - target), float(v.std())))
+        step_errors.append(np.abs(v - target))
+        per_traj.append((task, target, mean_v, float(step_errors[-1].mean()), abs(mean_v - target), float(v.std())))
     if not per_traj:
         raise TrackingError(f"velocity_tracking: no trajectory with k >= {min_k} has a {velocity_key!r} trace")
     table = np.array([row[1:] for row in per_traj])  # (trajectories, 5): target, mean v, per-step, mean-speed, std
@@ -104,6 +149,7 @@ def velocity_tracking(
         "n_trajectories": len(per_traj),
         "min_k": min_k,
         "tasks": tasks,
+        "parts": error_by_part(step_errors, n_parts),
     }
 
 
@@ -170,6 +216,12 @@ def format_tracking(name: str, tracking: Mapping[str, Any]) -> str:
     )
     if tracking["slope"] is not None:
         lines.append(f"least-squares line: mean speed = {tracking['slope']:.2f} x target {tracking['intercept']:+.2f}")
+    parts = [
+        f"steps {part['first_step']}-{part['end_step'] - 1}: "
+        + ("n/a" if part["error"] is None else f"{part['error']:.3f} ({part['n_trajectories']} traj.)")
+        for part in tracking["parts"]
+    ]
+    lines.append("per-step error by part of the episode: " + "; ".join(parts))
     return "\n".join(lines)
 
 
@@ -202,6 +254,7 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sb3_pearl.tracking", description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="harness run folders (result.json + model.zip) of a velocity family")
     p.add_argument("--n-tasks", type=positive_int, default=None, help="training tasks (default: the competence check's)")
+    p.add_argument("--parts", type=positive_int, default=4, help="equal parts of the episode the error is split over (4)")
     p.add_argument("--plot", default=None, metavar="PNG", help="draw mean speed against target to this PNG")
     p.add_argument("--title", default="", help="title of the figure")
     p.add_argument("--json", action="store_true", help="print JSON instead of the tables")
@@ -222,7 +275,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
     results: dict[str, dict[str, Any]] = {}
     for run in args.runs:
         try:
-            results[run] = velocity_tracking(rerun_competence(run, args.n_tasks))
+            results[run] = velocity_tracking(rerun_competence(run, args.n_tasks), n_parts=args.parts)
         except (RunFolderError, TrackingError) as error:
             p.error(f"{run}: {error}")
         committed = committed_per_step_error(run) if args.n_tasks is None else None

@@ -41,6 +41,18 @@ def test_the_split_by_hand() -> None:
     assert task1["oscillation"] == pytest.approx(0.5)
     # the prior's trajectory counts from min_k = 0 on
     assert velocity_tracking(_result(), min_k=0)["n_trajectories"] == 4
+    # by part of the episode (horizon 4 steps; the two 2-step trajectories reach only the first half)
+    # per-step errors: [0.8, 0.4, 0.0, 0.4], [0.9, 0.9], [1.9, 0.1]
+    halves = tracking["parts"] if len(tracking["parts"]) == 2 else velocity_tracking(_result(), n_parts=2)["parts"]
+    assert [(p["first_step"], p["end_step"], p["n_trajectories"]) for p in halves] == [(0, 2, 3), (2, 4, 1)]
+    assert halves[0]["error"] == pytest.approx((0.6 + 0.9 + 1.0) / 3) and halves[1]["error"] == pytest.approx(0.2)
+    quarters = tracking["parts"]  # the default: 4 parts, one step each here
+    assert [p["error"] for p in quarters] == pytest.approx([1.2, 1.4 / 3, 0.0, 0.4])
+    assert [p["n_trajectories"] for p in quarters] == [3, 3, 1, 1]
+    eighths = velocity_tracking(_result(), n_parts=8)["parts"]  # more parts than steps: the empty ones have no value
+    assert [p["error"] is None for p in eighths] == [True, False] * 4
+    with pytest.raises(ValueError, match="n_parts must be >= 1"):
+        velocity_tracking(_result(), n_parts=0)
     # one target only: no line
     single = _result()
     single.traces = single.traces[2:]
@@ -72,7 +84,11 @@ def test_the_command_reruns_the_competence_meta_test(tmp_path: Path, capsys: pyt
     tracking = results[str(run)]
     assert tracking["n_trajectories"] == 2 and len(tracking["tasks"]) == 2  # k = 1 on two training tasks
     assert [row["target"] for row in tracking["tasks"]] == [t["velocity"] for t in model.train_tasks[:2]]
-    assert "per-step err" in capsys.readouterr().out and plot.stat().st_size > 0
+    out = capsys.readouterr().out
+    assert "per-step err" in out and "by part of the episode: steps 0-" in out and plot.stat().st_size > 0
+    # the cheetah never falls: every trajectory runs the horizon, and the four equal parts average to the per-step error
+    assert {len(t["x_velocity"]) for t in rerun_competence(run).traces if t["k"] >= 1} == {200}
+    assert np.mean([p["error"] for p in tracking["parts"]]) == pytest.approx(tracking["per_step_error"])
     assert main([str(run), "--json"])[str(run)] == tracking  # the same trajectories: seeded by the run's eval seed
     # the family's own per-step error (the competence criterion's trace, -|v - v*|) is what the split starts from
     rerun = rerun_competence(run)
