@@ -115,7 +115,7 @@ def test_a_checkpoint_file_over_the_part_size_is_split_and_resumes_the_same(
 def test_status_projects_a_run_at_the_rate_between_its_last_two_checkpoints(tmp_path: Path) -> None:
     """A run whose first steps were cheap (PEARL's initial pool) is projected at its current rate, not its average."""
     from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.reproduce.status import run_status
+    from sb3_pearl.reproduce.status import format_status, run_status
 
     folder = tmp_path / FOLDER / CHECKPOINT_DIR
     folder.mkdir(parents=True)
@@ -133,6 +133,15 @@ def test_status_projects_a_run_at_the_rate_between_its_last_two_checkpoints(tmp_
     # 400 steps at the smoke preset: 160 left. Average 0.1 s a step; the last 120 steps at 0.25 s a step.
     assert left(None) == pytest.approx([16.0, 40.0])  # a state of an earlier version: the average
     assert left({"cpu_s": 30.0, "steps": 120}) == pytest.approx([40.0, 24.0 + 40.0])  # seed 1: seed 0's projected total
+
+    # the checkpoint's size: the files its state names and the state, not leftovers (a kill's temporary file)
+    (folder / "model_240.zip").write_bytes(b"m" * 1_500_000)
+    (folder / ".model_360.zip.tmp").write_bytes(b"t" * 9_000_000)
+    rows = run_status(experiment, "smoke", [0, 1], tmp_path, ["safe-point"], ["alpha-0.1"])
+    size = 1_500_000 + (folder / "state.json").stat().st_size
+    assert [row.checkpoint_bytes for row in rows] == [size, 0]
+    text = format_status(rows)
+    assert f"{size / 1e6:.1f} MB" in text and "1 checkpoint(s)" in text and "commit part-way runs once per session" in text
 
 
 def test_a_resumed_run_records_the_rate_between_its_checkpoints(tmp_path: Path) -> None:

@@ -152,6 +152,11 @@ class RunCheckpoint:
             i += 1
         return b"".join(chunks)
 
+    def size_bytes(self, state: dict[str, Any]) -> int:
+        """The bytes on disk of the files the state names, with the state itself: what committing the checkpoint adds."""
+        names = [*(state.get("files") or {}).values(), STATE_FILE]
+        return sum((self.folder / name).stat().st_size for name in names if (self.folder / name).is_file())
+
     def progress_snapshot(self, state: dict[str, Any]) -> Path | None:
         """The training log saved with the checkpoint, if any."""
         name = (state.get("files") or {}).get("progress")
