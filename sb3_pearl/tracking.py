@@ -22,8 +22,8 @@ from one that never reaches it (the same error in every part).
 ``python -m sb3_pearl.tracking RUN [RUN ...] [--plot out.png]`` reruns each harness run's competence
 meta-test (its training tasks, settings and eval seed from ``result.json``: the trajectories its competence value
 was measured on, where the machine and package versions are the same; it warns when the per-step error differs) with
-the velocity trace, and prints the split per task; ``--plot`` draws each
-trajectory's mean speed against its target.
+the velocity trace, and prints the split per task and by part of the episode; ``--plot`` draws each task's mean speed
+against its target and the error by part of the episode (``--bar``: the competence bar on it).
 """
 
 from __future__ import annotations
@@ -225,27 +225,39 @@ def format_tracking(name: str, tracking: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def plot_tracking(runs: Mapping[str, Mapping[str, Any]], path: str | Path, title: str = "") -> None:
+def plot_tracking(runs: Mapping[str, Mapping[str, Any]], path: str | Path, title: str = "", bar: float | None = None) -> None:
     """
-    Each task's mean speed against its target, one marker per run, with the line of perfect tracking.
+    Two panels: each task's mean speed against its target (with the line of perfect tracking), and the per-step error
+    by part of the episode; one colour per run.
 
     :param runs: name -> :func:`velocity_tracking`
     :param path: the PNG
     :param title: figure title
+    :param bar: the competence bar on the per-step error, drawn on the second panel (None: none)
     """
     from sb3_pearl.evaluation.figures import _save, plt  # the package's matplotlib set-up (Agg backend)
 
-    fig, ax = plt.subplots(figsize=(5.5, 4.5))
-    top = 0.0
+    fig, (ax, parts_ax) = plt.subplots(1, 2, figsize=(11, 4.5))
+    top, worst = 0.0, 0.0
     for name, tracking in runs.items():
         targets = [row["target"] for row in tracking["tasks"]]
         speeds = [row["mean_speed"] for row in tracking["tasks"]]
         top = max(top, *targets, *speeds)
-        ax.plot(targets, speeds, "o", alpha=0.8, label=f"{name} (per-step error {tracking['per_step_error']:.2f})")
+        (line,) = ax.plot(targets, speeds, "o", alpha=0.8, label=f"{name} (per-step error {tracking['per_step_error']:.2f})")
+        parts = [part for part in tracking["parts"] if part["error"] is not None]
+        middles = [(part["first_step"] + part["end_step"]) / 2 for part in parts]
+        parts_ax.plot(middles, [part["error"] for part in parts], "o-", color=line.get_color(), label=name)
+        worst = max(worst, *(part["error"] for part in parts))
     ax.plot([0, top], [0, top], "k--", lw=1, label="perfect tracking")
     ax.set_xlabel("target velocity [m/s]")
     ax.set_ylabel("mean forward velocity of the posterior trajectories [m/s]")
     ax.legend(fontsize=7)
+    if bar is not None:
+        parts_ax.axhline(bar, color="k", ls="--", lw=1, label=f"competence bar ({bar:g})")
+    parts_ax.set_xlabel("step of the episode (middle of each part)")
+    parts_ax.set_ylabel("per-step velocity error in that part [m/s]")
+    parts_ax.set_ylim(0, 1.45 * max(worst, bar or 0.0))  # room above the lines for the legend
+    parts_ax.legend(fontsize=7, loc="upper center", ncol=2)
     _save(fig, path, title)
 
 
@@ -257,6 +269,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--parts", type=positive_int, default=4, help="equal parts of the episode the error is split over (4)")
     p.add_argument("--plot", default=None, metavar="PNG", help="draw mean speed against target to this PNG")
     p.add_argument("--title", default="", help="title of the figure")
+    p.add_argument("--bar", type=float, default=None, help="competence bar drawn on the error-by-part panel (e.g. 0.3)")
     p.add_argument("--json", action="store_true", help="print JSON instead of the tables")
     return p
 
@@ -292,7 +305,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
         print(json.dumps(results, indent=1))
     if args.plot:
         names = {run: " ".join(Path(run).parts[-3:]) for run in results}  # <family> <variant> seed<N>
-        plot_tracking({names[run]: tracking for run, tracking in results.items()}, args.plot, args.title)
+        plot_tracking({names[run]: tracking for run, tracking in results.items()}, args.plot, args.title, args.bar)
     return results
 
 

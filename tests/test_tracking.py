@@ -80,7 +80,7 @@ def test_the_command_reruns_the_competence_meta_test(tmp_path: Path, capsys: pyt
     record = {"spec": spec, "eval_seed": 7, "competence": {"settings": settings}}
     (run / "result.json").write_text(json.dumps(record))
     plot = tmp_path / "tracking.png"
-    results = main([str(run), "--plot", str(plot)])
+    results = main([str(run), "--plot", str(plot), "--bar", "0.3"])
     tracking = results[str(run)]
     assert tracking["n_trajectories"] == 2 and len(tracking["tasks"]) == 2  # k = 1 on two training tasks
     assert [row["target"] for row in tracking["tasks"]] == [t["velocity"] for t in model.train_tasks[:2]]
