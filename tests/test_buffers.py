@@ -34,7 +34,7 @@ def test_pickle_holds_the_rows_in_use_only_and_loads_to_the_same_samples() -> No
     buffer = filled_buffer()
     np.testing.assert_array_equal(buffer.size, [40, 3, 0, 50])
     state = buffer.__getstate__()
-    assert state["layout"] == "rows-in-use"
+    assert state["layout"] == "rows-in-use-shared-next"
     assert state["observations"].shape == (40 + 3 + 0 + 50, 3)  # not (4, 50, 3): the largest task does not pad the rest
     np.testing.assert_array_equal(state["rewards"][40:43, 0], buffer.rewards[1, :3, 0])
 
@@ -73,3 +73,62 @@ def test_a_padded_pickle_of_an_earlier_version_still_loads() -> None:
     old.__setstate__(state)
     for name in TaskReplayBuffer._ARRAYS:
         np.testing.assert_array_equal(getattr(old, name), getattr(buffer, name))
+
+
+def test_next_observations_shared_with_the_following_rows_are_written_once_and_load_bit_for_bit() -> None:
+    """Trajectories: each row's next observation is the next row's observation except at an episode's end, at a task's
+    last row and where a ring wrapped; only those are written, and the loaded buffer has the same bits (-0.0, NaN)."""
+    buffer = TaskReplayBuffer(3, 20, OBS, ACT)
+    rng = np.random.default_rng(1)
+    ends = 0
+
+    def trajectories(task: int, n: int, length: int) -> None:
+        nonlocal ends
+        obs = rng.normal(size=3).astype(np.float32)
+        for t in range(n):
+            next_obs = rng.normal(size=3).astype(np.float32)
+            if t == 2:
+                next_obs[0] = -0.0  # equal to 0.0 as a float, not as bits
+            if t == 3:
+                next_obs[1] = np.nan  # unequal to itself as a float, equal as bits
+            done = (t + 1) % length == 0
+            buffer.add(task, obs, rng.normal(size=2), 1.0, next_obs, done)
+            ends += done
+            obs = rng.normal(size=3).astype(np.float32) if done else next_obs  # a reset starts elsewhere
+
+    trajectories(0, 12, 5)  # ends after rows 4 and 9; row 11 is the task's last
+    trajectories(1, 26, 100)  # one trajectory over a ring of 20: wrapped at row 5, so row 5 does not precede row 6
+    trajectories(2, 7, 7)  # one whole trajectory
+    state = buffer.__getstate__()
+    n_rows = 12 + 20 + 7
+    assert state["observations"].shape == (n_rows, 3)
+    # written: task 0's rows 4, 9, 11; task 1's row 5 (its successor in time went to row 0) and row 19; task 2's row 6
+    assert state["next_observations"].shape == (6, 3)
+    assert len(state["next_follows"]) == (n_rows + 7) // 8  # one bit a row
+
+    pickled = pickle.dumps(buffer)
+    loaded = pickle.loads(pickled)
+    assert pickle.dumps(loaded) == pickled
+    for name in TaskReplayBuffer._ARRAYS:
+        for task, n in enumerate(buffer.size):
+            want, got = getattr(buffer, name)[task, :n], getattr(loaded, name)[task, :n]
+            np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))  # the same bits
+    assert np.isnan(loaded.next_observations[0, 3, 1]) and np.signbit(loaded.next_observations[0, 2, 0])
+
+    whole = pickle.dumps({name: getattr(buffer, name) for name in TaskReplayBuffer._ARRAYS})  # what sharing saves
+    assert len(pickled) < len(whole)
+
+
+def test_a_rows_in_use_pickle_without_shared_next_observations_still_loads() -> None:
+    buffer = filled_buffer()
+    used = int(buffer.size.max())
+    held = buffer._rows_in_use(used)
+    state = buffer.__dict__.copy()
+    for name in TaskReplayBuffer._ARRAYS:
+        state[name] = getattr(buffer, name)[:, :used][held]
+    state["layout"] = "rows-in-use"  # the layout of 2026-12-02 to 2026-12-04 (the committed walker checkpoint)
+    old = TaskReplayBuffer.__new__(TaskReplayBuffer)
+    old.__setstate__(state)
+    for name in TaskReplayBuffer._ARRAYS:
+        for task, n in enumerate(buffer.size):
+            np.testing.assert_array_equal(getattr(old, name)[task, :n], getattr(buffer, name)[task, :n])

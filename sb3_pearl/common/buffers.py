@@ -132,17 +132,35 @@ class TaskReplayBuffer:
         Pickle only the rows in use (``save_replay_buffer``), task after task: neither the capacity nor the rows a
         task has not filled are written, so a buffer of unequal task sizes (PEARL samples 5 tasks an iteration) costs
         what it holds. Rows past a task's size are never sampled, so the loaded buffer trains the same weights.
+
+        A row's next observation is, within a trajectory, the observation of the row written after it: it is written
+        only where it is not bit for bit the next written row's observation (episode ends, the last row, a ring that
+        wrapped), with one bit per row saying which. That drops a third of a MuJoCo buffer (Walker2D-vel: 17 of ~44
+        floats a row) and the loaded arrays are the same bits.
         """
         state = self.__dict__.copy()
         used = int(self.size.max()) if self.size.size else 0
         held = self._rows_in_use(used)
         for name in self._saved_arrays():
             state[name] = getattr(self, name)[:, :used][held]  # (size.sum(), dim): task 0's rows, then task 1's, ...
-        state["layout"] = "rows-in-use"
+        observations, next_observations = state["observations"], state["next_observations"]
+        follows = np.zeros(len(observations), dtype=bool)  # row i's next observation is row i + 1's observation
+        follows[:-1] = (next_observations[:-1].view(np.uint32) == observations[1:].view(np.uint32)).all(axis=1)
+        state["next_observations"] = next_observations[~follows]  # (rows not followed, dim)
+        state["next_follows"] = np.packbits(follows)
+        state["layout"] = "rows-in-use-shared-next"
         return state
 
     def __setstate__(self, state: dict) -> None:
         layout = state.pop("layout", "padded")  # "padded": earlier pickles, arrays (n_tasks, largest size, dim)
+        if layout == "rows-in-use-shared-next":  # rebuild the next observations the pickle shares with the rows after
+            observations = state["observations"]  # (size.sum(), dim)
+            follows = np.unpackbits(state.pop("next_follows"), count=len(observations)).astype(bool)
+            next_observations = np.empty_like(observations)
+            next_observations[~follows] = state["next_observations"]
+            next_observations[:-1][follows[:-1]] = observations[1:][follows[:-1]]
+            state["next_observations"] = next_observations
+            layout = "rows-in-use"
         if "prior_z" not in state:  # a buffer saved before the flag existed: its z sources are unknown (none marked)
             state["prior_z"] = np.zeros_like(state["rewards"])
         state.setdefault("has_returns", False)  # saved before the return arrays existed

@@ -13,7 +13,7 @@ Finished runs written before the CPU time was recorded count their wall time.
 
 A resumable run also shows the size of its checkpoint (the files its state names): a part-way run is carried to the
 next session by committing that checkpoint, and each commit of one adds its size to the repository's history (a
-Walker2D-vel replay buffer grows by ~176 bytes per env step: 110 MB at 625k steps).
+Walker2D-vel replay buffer at the reference's networks grows by ~110 bytes per env step held).
 """
 
 from __future__ import annotations
