@@ -333,7 +333,7 @@ def test_presets_reject_unknown_names(args: tuple[str, str, str], message: str) 
 def test_walker_reference_family_reduces_only_the_rows_of_the_reference_configuration() -> None:
     """walker2d-vel-ref at `cpu` is the paper preset's Walker2D-vel PEARL (the reference's) with cheetah-vel's one cut."""
     experiment = get_experiment("pearl-reference")
-    names = ["cheetah-vel", "walker2d-vel-long", "walker2d-vel-ref", "walker2d-vel-ref-long"]
+    names = ["cheetah-vel", "walker2d-vel-long", "walker2d-vel-ref", "walker2d-vel-ref-long", "ant3d-vel-long"]
     assert [f.name for f in experiment.families] == names
     ref = next(f for f in experiment.families if f.name == "walker2d-vel-ref")
     assert ref.env_id == "Walker2dVelMeta-v0" and ref.competence == get_family("walker2d-vel").competence
@@ -349,6 +349,14 @@ def test_walker_reference_family_reduces_only_the_rows_of_the_reference_configur
     assert long["n_timesteps"] == 1_500_000
     ref_long = next(f for f in experiment.families if f.name == "walker2d-vel-ref-long")
     assert dataclasses.replace(ref_long, name=ref.name, title=ref.title, budget_family=ref.budget_family) == ref
+    # ant3d-vel-long: Table I's Ant-3D-Vel PEARL (family and `cpu` entry) to 500k env steps with the curve, nothing else
+    ant_long, ant = experiment.family("ant3d-vel-long"), get_family("ant3d-vel")
+    assert dataclasses.replace(ant_long, name=ant.name, title=ant.title, budget_family=ant.budget_family) == ant
+    long_ant, table1_ant = load_budget("cpu", "ant3d-vel-long", "pearl"), load_budget("cpu", "ant3d-vel", "pearl")
+    assert {k: v for k, v in long_ant.items() if k not in ("n_timesteps", "curve")} == {
+        k: v for k, v in table1_ant.items() if k not in ("n_timesteps", "curve")
+    }
+    assert (long_ant["n_timesteps"], table1_ant["n_timesteps"]) == (500_000, 80_000) and long_ant["curve"]["every"] == 20_000
 
 
 def test_preset_entry_validation() -> None:

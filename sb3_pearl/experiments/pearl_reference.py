@@ -26,13 +26,20 @@ still being learnt), and a straight line through walker2d-vel-ref's curve crosse
 ~8.5 core-hours a seed on the Xeon, so it resumes across sessions (``--family walker2d-vel-ref-long --seeds 0``). Its
 first 500k env steps are walker2d-vel-ref's (same configuration and seed): on the same CPU model its curve repeats
 walker2d-vel-ref's point by point, a free check of the harness' determinism.
+
+The fifth family, ``ant3d-vel-long``, asks the same question of Ant-3D-Vel, the paper's other MuJoCo family of Tables
+I and II, once Walker2D-vel had no `cpu-long` budget within reach: PEARL at the ``cpu`` preset's Ant-3D-Vel entry
+(Table I's networks, batch and schedule) trained to 500k env steps instead of 80k, with the curve and the competence
+check every 20k (``--family ant3d-vel-long --seeds 0``). The first competent env-step count, if any, is the budget of
+a Table I Ant-3D-Vel row at which PEARL is competent. Written before the run: one seed first (~1.5 core-hours on the
+Xeon); a second only if the first becomes competent.
 """
 
 from __future__ import annotations
 
 import dataclasses
 
-from sb3_pearl.experiments.families import HALF_CHEETAH_VEL, WALKER2D_VEL
+from sb3_pearl.experiments.families import ANT3D_VEL, HALF_CHEETAH_VEL, WALKER2D_VEL
 from sb3_pearl.experiments.spec import Experiment, Family, Variant
 
 # PEARL's learning curve on Walker2D-vel at the `cpu` networks, to 500k env steps: where does it become competent
@@ -57,19 +64,25 @@ WALKER2D_VEL_REF_LONG: Family = dataclasses.replace(
     budget_family="walker2d-vel-ref-long",
 )
 
+# Ant-3D-Vel at Table I's `cpu` entry trained to 500k env steps: is there a budget at which PEARL is competent there?
+ANT3D_VEL_LONG: Family = dataclasses.replace(
+    ANT3D_VEL, name="ant3d-vel-long", title="Ant-3D-Vel, 500k steps", budget_family="ant3d-vel-long"
+)
+
 PEARL_REFERENCE = Experiment(
     name="pearl-reference",
     title=(
         "PEARL's learning curves to 500k env steps (walker2d-vel-ref-long: 1.5M): HalfCheetah-Vel (the reference "
-        "configuration), Walker2D-vel"
+        "configuration), Walker2D-vel, Ant-3D-Vel"
     ),
     description=(
         "PEARL on HalfCheetahVelMeta-v0 with the PEARL reference implementation's cheetah-vel configuration (reduced "
         "for a CPU core at the cpu preset, docs/reproduce.md), and on Walker2D-vel with the cpu preset's networks "
         "(walker2d-vel-long) and with the reference's networks and cheetah-vel's row reduction (walker2d-vel-ref); 500k env "
-        "steps (walker2d-vel-ref-long: 1.5M), learning curve every 20k steps"
+        "steps (walker2d-vel-ref-long: 1.5M), learning curve every 20k steps; Ant-3D-Vel at the cpu preset's networks "
+        "to 500k (ant3d-vel-long)"
     ),
-    families=(HALF_CHEETAH_VEL, WALKER2D_VEL_LONG, WALKER2D_VEL_REF, WALKER2D_VEL_REF_LONG),
+    families=(HALF_CHEETAH_VEL, WALKER2D_VEL_LONG, WALKER2D_VEL_REF, WALKER2D_VEL_REF_LONG, ANT3D_VEL_LONG),
     variants=(Variant("pearl", "PEARL", "pearl"),),
     seeds=(0, 1, 2),
     budget="cpu",
