@@ -51,23 +51,29 @@ class TrackingError(ValueError):
     """Input the split cannot be made on (not a velocity family, no trace, not a finished harness run)."""
 
 
-def error_by_part(errors: Sequence[np.ndarray], n_parts: int) -> list[dict[str, Any]]:
+def error_by_part(errors: Sequence[np.ndarray], n_parts: int, horizon: int | None = None) -> list[dict[str, Any]]:
     """
-    The per-step error over equal step ranges of the horizon (the longest trajectory), each trajectory weighted once.
+    The per-step error over equal step ranges of the episode, each trajectory weighted once.
 
     Part ``i`` covers steps ``[floor(i H / n), floor((i + 1) H / n))`` of the horizon ``H``; its error is the mean over
-    the trajectories that reach it of their mean error within it (a trajectory ended early, by a fall, counts only in
-    the parts it reached), so where every trajectory runs the whole horizon and the parts are of equal length the parts
-    average to the per-step error.
+    the trajectories that reach it of their mean error within it. A trajectory ended early (a fall) counts only in the
+    parts it reached, so a later part describes the trajectories that survived to it (its ``n_trajectories`` says how
+    many). Where every trajectory runs the whole horizon and the parts are of equal length, the parts average to the
+    per-step error.
 
     :param errors: per trajectory, its per-step errors ``|v_t - v*|`` (steps,)
     :param n_parts: number of parts
+    :param horizon: the episode's step limit (None: the longest trajectory)
     :return: per part: ``first_step``, ``end_step`` (exclusive), ``error`` (None where no trajectory reaches the part)
         and ``n_trajectories``
     """
     if n_parts < 1:
         raise ValueError(f"error_by_part: n_parts must be >= 1, got {n_parts}")
-    horizon = max(len(e) for e in errors)
+    longest = max(len(e) for e in errors)
+    if horizon is None:
+        horizon = longest
+    elif horizon < longest:
+        raise ValueError(f"error_by_part: a trajectory has {longest} steps, more than the horizon {horizon}")
     bounds = [i * horizon // n_parts for i in range(n_parts + 1)]
     parts = []
     for first, end in zip(bounds[:-1], bounds[1:]):
@@ -89,6 +95,7 @@ def velocity_tracking(
     velocity_key: str = VELOCITY_KEY,
     target_key: str = TARGET_KEY,
     n_parts: int = 4,
+    horizon: int | None = None,
 ) -> dict[str, Any]:
     """
     Split the per-step velocity error of the trajectories ``k >= min_k`` into the mean-speed error and the oscillation,
@@ -99,6 +106,7 @@ def velocity_tracking(
     :param velocity_key: per-step trace of the forward velocity
     :param target_key: task entry of the target velocity
     :param n_parts: equal step ranges of the horizon the per-step error is also split over (:func:`error_by_part`)
+    :param horizon: the episode's step limit the parts divide (None: the longest trajectory)
     :return: ``per_step_error``, ``mean_speed_error``, ``oscillation`` (means over trajectories), ``slope`` and
         ``intercept`` of the least-squares line of mean speed on target (None with fewer than two distinct targets),
         ``n_trajectories``, ``tasks`` (per task: target, mean speed and the three errors, averaged over its
@@ -149,7 +157,7 @@ def velocity_tracking(
         "n_trajectories": len(per_traj),
         "min_k": min_k,
         "tasks": tasks,
-        "parts": error_by_part(step_errors, n_parts),
+        "parts": error_by_part(step_errors, n_parts, horizon),
     }
 
 
@@ -217,7 +225,7 @@ def format_tracking(name: str, tracking: Mapping[str, Any]) -> str:
     if tracking["slope"] is not None:
         lines.append(f"least-squares line: mean speed = {tracking['slope']:.2f} x target {tracking['intercept']:+.2f}")
     parts = [
-        f"steps {part['first_step']}-{part['end_step'] - 1}: "
+        (f"steps {part['first_step']}-{part['end_step'] - 1}: " if part["end_step"] > part["first_step"] else "no steps: ")
         + ("n/a" if part["error"] is None else f"{part['error']:.3f} ({part['n_trajectories']} traj.)")
         for part in tracking["parts"]
     ]
@@ -267,7 +275,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", help="harness run folders (result.json + model.zip) of a velocity family")
     p.add_argument("--n-tasks", type=positive_int, default=None, help="training tasks (default: the competence check's)")
     p.add_argument("--parts", type=positive_int, default=4, help="equal parts of the episode the error is split over (4)")
-    p.add_argument("--plot", default=None, metavar="PNG", help="draw mean speed against target to this PNG")
+    p.add_argument(
+        "--plot", default=None, metavar="PNG", help="draw mean speed against target and the error by part to this PNG"
+    )
     p.add_argument("--title", default="", help="title of the figure")
     p.add_argument("--bar", type=float, default=None, help="competence bar drawn on the error-by-part panel (e.g. 0.3)")
     p.add_argument("--json", action="store_true", help="print JSON instead of the tables")
@@ -281,14 +291,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
     :param argv: arguments (default: ``sys.argv[1:]``)
     :return: run folder -> :func:`velocity_tracking`
     """
-    from sb3_pearl.diagnose import RunFolderError
+    from sb3_pearl.diagnose import RunFolderError, find_run
 
     p = parser()
     args = p.parse_args(argv)
     results: dict[str, dict[str, Any]] = {}
     for run in args.runs:
         try:
-            results[run] = velocity_tracking(rerun_competence(run, args.n_tasks), n_parts=args.parts)
+            horizon = gym.spec(find_run(run)[1]).max_episode_steps  # the parts divide the episode, not the survivors
+            results[run] = velocity_tracking(rerun_competence(run, args.n_tasks), n_parts=args.parts, horizon=horizon)
         except (RunFolderError, TrackingError) as error:
             p.error(f"{run}: {error}")
         committed = committed_per_step_error(run) if args.n_tasks is None else None

@@ -380,6 +380,8 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
     row = next(r for r in run_status(PRIOR_CRITIC, "cpu", PRIOR_CRITIC.seeds, tmp_path) if r.key == started)
     assert row.status == "awaiting" and "checkpoint at 240 steps (--variants alpha-1-twin)" in row.progress
     assert row.cpu_spent_s == 24.0
+    # its checkpoint counts in the sizes too: committing it adds it to the history all the same
+    assert row.checkpoint_bytes == (run_dir(tmp_path, started) / "checkpoint" / "state.json").stat().st_size > 0
 
     def planned(*args: str) -> set[str]:
         capsys.readouterr()

@@ -43,7 +43,7 @@ def test_the_split_by_hand() -> None:
     assert velocity_tracking(_result(), min_k=0)["n_trajectories"] == 4
     # by part of the episode (horizon 4 steps; the two 2-step trajectories reach only the first half)
     # per-step errors: [0.8, 0.4, 0.0, 0.4], [0.9, 0.9], [1.9, 0.1]
-    halves = tracking["parts"] if len(tracking["parts"]) == 2 else velocity_tracking(_result(), n_parts=2)["parts"]
+    halves = velocity_tracking(_result(), n_parts=2)["parts"]
     assert [(p["first_step"], p["end_step"], p["n_trajectories"]) for p in halves] == [(0, 2, 3), (2, 4, 1)]
     assert halves[0]["error"] == pytest.approx((0.6 + 0.9 + 1.0) / 3) and halves[1]["error"] == pytest.approx(0.2)
     quarters = tracking["parts"]  # the default: 4 parts, one step each here
@@ -53,6 +53,12 @@ def test_the_split_by_hand() -> None:
     assert [p["error"] is None for p in eighths] == [True, False] * 4
     with pytest.raises(ValueError, match="n_parts must be >= 1"):
         velocity_tracking(_result(), n_parts=0)
+    # the episode's horizon, not the longest trajectory: with 8 steps, the second half holds no trajectory at all
+    episode = velocity_tracking(_result(), n_parts=2, horizon=8)["parts"]
+    assert [(p["first_step"], p["end_step"], p["n_trajectories"]) for p in episode] == [(0, 4, 3), (4, 8, 0)]
+    assert episode[0]["error"] == pytest.approx((0.4 + 0.9 + 1.0) / 3) and episode[1]["error"] is None
+    with pytest.raises(ValueError, match="more than the horizon 3"):
+        velocity_tracking(_result(), horizon=3)
     # one target only: no line
     single = _result()
     single.traces = single.traces[2:]

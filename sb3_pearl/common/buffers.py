@@ -143,7 +143,7 @@ class TaskReplayBuffer:
         held = self._rows_in_use(used)
         for name in self._saved_arrays():
             state[name] = getattr(self, name)[:, :used][held]  # (size.sum(), dim): task 0's rows, then task 1's, ...
-        observations, next_observations = state["observations"], state["next_observations"]
+        observations, next_observations = state["observations"], state["next_observations"]  # float32, C-contiguous
         follows = np.zeros(len(observations), dtype=bool)  # row i's next observation is row i + 1's observation
         follows[:-1] = (next_observations[:-1].view(np.uint32) == observations[1:].view(np.uint32)).all(axis=1)
         state["next_observations"] = next_observations[~follows]  # (rows not followed, dim)
@@ -157,8 +157,8 @@ class TaskReplayBuffer:
             observations = state["observations"]  # (size.sum(), dim)
             follows = np.unpackbits(state.pop("next_follows"), count=len(observations)).astype(bool)
             next_observations = np.empty_like(observations)
-            next_observations[~follows] = state["next_observations"]
-            next_observations[:-1][follows[:-1]] = observations[1:][follows[:-1]]
+            next_observations[:-1] = observations[1:]  # right where ``follows``; the rest is overwritten next
+            next_observations[~follows] = state["next_observations"]  # the last row is never followed
             state["next_observations"] = next_observations
             layout = "rows-in-use"
         if "prior_z" not in state:  # a buffer saved before the flag existed: its z sources are unknown (none marked)

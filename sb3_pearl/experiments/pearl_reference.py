@@ -28,11 +28,11 @@ first 500k env steps are walker2d-vel-ref's (same configuration and seed): on th
 walker2d-vel-ref's point by point, a free check of the harness' determinism.
 
 The fifth family, ``ant3d-vel-long``, asks the same question of Ant-3D-Vel, the paper's other MuJoCo family of Tables
-I and II, once Walker2D-vel had no `cpu-long` budget within reach: PEARL at the ``cpu`` preset's Ant-3D-Vel entry
+I and II, once Walker2D-vel had no ``cpu-long`` budget within reach: PEARL at the ``cpu`` preset's Ant-3D-Vel entry
 (Table I's networks, batch and schedule) trained to 500k env steps instead of 80k, with the curve and the competence
 check every 20k (``--family ant3d-vel-long --seeds 0``). The first competent env-step count, if any, is the budget of
-a Table I Ant-3D-Vel row at which PEARL is competent. Written before the run: one seed first (~1.5 core-hours on the
-Xeon); a second only if the first becomes competent.
+a Table I Ant-3D-Vel row at which PEARL is competent. Written before the run: one seed first (~1.4 core-hours on the
+Xeon); a second only if the first becomes competent (name the seeds: the experiment's default is 0-2).
 """
 
 from __future__ import annotations

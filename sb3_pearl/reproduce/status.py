@@ -132,12 +132,14 @@ def run_status(
             # planned by `run` only if the selection rule picks it: its cost is counted apart (format_status); one
             # started with --variants keeps its checkpoint, resumed by naming it again
             why = "awaiting the selection rule" if held[key.variant] == "awaiting" else "not selected by the rule"
-            spent = 0.0
+            spent, size = 0.0, 0
             if state is not None:
                 spent = float(state["spent"]["cpu_s"])
+                size = RunCheckpoint(run_dir(results_dir, key)).size_bytes(state)
                 why += f", checkpoint at {int(state['num_timesteps'])} steps (--variants {key.variant})"
             left = mean_finite([t for t, _ in known]) if known else projected_training(key)
-            rows.append(RunStatus(key, held[key.variant], why, spent, left - spent if math.isfinite(left) else left))
+            left = left - spent if math.isfinite(left) else left
+            rows.append(RunStatus(key, held[key.variant], why, spent, left, checkpoint_bytes=size))
             continue
         if state is None:
             # no finished sibling: the training alone, as projected for its siblings in training (a lower bound)
