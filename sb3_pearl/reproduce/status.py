@@ -40,7 +40,7 @@ class RunStatus(NamedTuple):
     cpu_spent_s: float
     cpu_left_s: float  # nan: unknown
     training_only: bool = False  # cpu_left_s counts the training only (no finished sibling gives the evaluation's cost)
-    checkpoint_bytes: int = 0  # a resumable run's checkpoint on disk (the files its state names)
+    checkpoint_bytes: int = 0  # the run's checkpoint on disk (the files its state names), 0 without one
 
 
 def _finished_cpu(result: dict[str, Any]) -> tuple[float, float]:
@@ -128,14 +128,14 @@ def run_status(
         known = siblings(key)
         evaluation = mean_finite([e for _, e in known])
         state = states[key]
+        size = RunCheckpoint(run_dir(results_dir, key)).size_bytes(state) if state is not None else 0
         if key.variant in held:
             # planned by `run` only if the selection rule picks it: its cost is counted apart (format_status); one
             # started with --variants keeps its checkpoint, resumed by naming it again
             why = "awaiting the selection rule" if held[key.variant] == "awaiting" else "not selected by the rule"
-            spent, size = 0.0, 0
+            spent = 0.0
             if state is not None:
                 spent = float(state["spent"]["cpu_s"])
-                size = RunCheckpoint(run_dir(results_dir, key)).size_bytes(state)
                 why += f", checkpoint at {int(state['num_timesteps'])} steps (--variants {key.variant})"
             left = mean_finite([t for t, _ in known]) if known else projected_training(key)
             left = left - spent if math.isfinite(left) else left
@@ -159,7 +159,6 @@ def run_status(
         else:
             left = evaluation
             progress = f"evaluate ({', '.join(p for p in state['phases'] if not p.endswith('_s')) or 'starting'})"
-        size = RunCheckpoint(run_dir(results_dir, key)).size_bytes(state)
         rows.append(RunStatus(key, "resumable", progress, cpu, left, partial, size))
     return rows
 
