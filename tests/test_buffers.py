@@ -80,10 +80,8 @@ def test_next_observations_shared_with_the_following_rows_are_written_once_and_l
     last row and where a ring wrapped; only those are written, and the loaded buffer has the same bits (-0.0, NaN)."""
     buffer = TaskReplayBuffer(3, 20, OBS, ACT)
     rng = np.random.default_rng(1)
-    ends = 0
 
     def trajectories(task: int, n: int, length: int) -> None:
-        nonlocal ends
         obs = rng.normal(size=3).astype(np.float32)
         for t in range(n):
             next_obs = rng.normal(size=3).astype(np.float32)
@@ -93,7 +91,6 @@ def test_next_observations_shared_with_the_following_rows_are_written_once_and_l
                 next_obs[1] = np.nan  # unequal to itself as a float, equal as bits
             done = (t + 1) % length == 0
             buffer.add(task, obs, rng.normal(size=2), 1.0, next_obs, done)
-            ends += done
             obs = rng.normal(size=3).astype(np.float32) if done else next_obs  # a reset starts elsewhere
 
     trajectories(0, 12, 5)  # ends after rows 4 and 9; row 11 is the task's last

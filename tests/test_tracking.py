@@ -92,12 +92,12 @@ def test_the_command_reruns_the_competence_meta_test(tmp_path: Path, capsys: pyt
     assert [row["target"] for row in tracking["tasks"]] == [t["velocity"] for t in model.train_tasks[:2]]
     out = capsys.readouterr().out
     assert "per-step err" in out and "by part of the episode: steps 0-" in out and plot.stat().st_size > 0
+    rerun = rerun_competence(run)
     # the cheetah never falls: every trajectory runs the horizon, and the four equal parts average to the per-step error
-    assert {len(t["x_velocity"]) for t in rerun_competence(run).traces if t["k"] >= 1} == {200}
+    assert {len(t["x_velocity"]) for t in rerun.traces if t["k"] >= 1} == {200}
     assert np.mean([p["error"] for p in tracking["parts"]]) == pytest.approx(tracking["per_step_error"])
     assert main([str(run), "--json"])[str(run)] == tracking  # the same trajectories: seeded by the run's eval seed
     # the family's own per-step error (the competence criterion's trace, -|v - v*|) is what the split starts from
-    rerun = rerun_competence(run)
     criterion = np.mean([-np.mean(t["reward_forward"]) for t in rerun.traces if t["k"] >= 1])
     assert tracking["per_step_error"] == pytest.approx(criterion, rel=1e-6)
     assert tracking["committed_per_step_error"] is None  # the record holds no criterion value
