@@ -394,6 +394,7 @@ def test_experiments_are_declared() -> None:
         "merge-table1",
         "merge-table2",
         "merge-table3",
+        "walker-table1",
     }
     premise = get_experiment("merge-premise")  # only the entropy setting differs from table1's PEARL, which it shares
     fixed = premise.variant("pearl-fixed-entropy")

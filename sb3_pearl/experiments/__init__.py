@@ -22,6 +22,7 @@ from sb3_pearl.experiments.prior_critic import PRIOR_CRITIC, PRIOR_CRITIC_WALKER
 from sb3_pearl.experiments.safe_point import SAFE_POINT_EXPERIMENT
 from sb3_pearl.experiments.spec import Claim, Criterion, Experiment, Family, PaperCell, Variant, check_shared
 from sb3_pearl.experiments.table1 import TABLE1
+from sb3_pearl.experiments.table1_rules import WALKER_TABLE1
 from sb3_pearl.experiments.table2 import TABLE2
 from sb3_pearl.experiments.table3 import TABLE3
 
@@ -39,6 +40,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         MERGE_TABLE1,
         MERGE_TABLE2,
         MERGE_TABLE3,
+        WALKER_TABLE1,
     )
 }
 for _experiment in EXPERIMENTS.values():

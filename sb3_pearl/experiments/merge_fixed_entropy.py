@@ -100,7 +100,8 @@ def merge_at_reference_entropy(
 
 PEARL_RUNS = {f"pearl{SUFFIX}": MERGE_PREMISE.name}  # merge-premise's PEARL at this setting
 
-MERGE_TABLE1 = merge_at_reference_entropy(TABLE1, "merge-table1", ("pearl", "pearlplus"), (0, 1, 2, 3), PEARL_RUNS)
+# 10 seeds since issue 36 (seeds 0-3 before it, 4-9 added; the rules: sb3_pearl.experiments.table1_rules)
+MERGE_TABLE1 = merge_at_reference_entropy(TABLE1, "merge-table1", ("pearl", "pearlplus"), tuple(range(10)), PEARL_RUNS)
 MERGE_TABLE2 = merge_at_reference_entropy(
     TABLE2, "merge-table2", ("pearl", "pearlplus-wo", "pearlplus-300", "pearlplus-100"), (0, 1, 2), PEARL_RUNS
 )
