@@ -58,7 +58,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, MetaTestResult]:
     """
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algos", nargs="+", default=["pearl", "pearlplus"], help="zoo algorithm names")
-    parser.add_argument("-n", "--n-timesteps", type=int, default=-1, help="override the YAML budget")
+    parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="override the YAML budget")
     parser.add_argument("-f", "--log-folder", default="logs", help="zoo log folder")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -70,7 +70,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, MetaTestResult]:
         train(
             [
                 *("--algo", algo, "--env", ENV_ID, "-f", args.log_folder, "--seed", str(args.seed)),
-                *("-n", str(args.n_timesteps), "--num-threads", "1", "--eval-freq", "-1", "--verbose", "0", "-P"),
+                *(() if args.n_timesteps is None else ("-n", str(args.n_timesteps))),
+                *("--num-threads", "1", "--eval-freq", "-1", "--verbose", "0", "-P"),
             ]
         )
         log_path = os.path.join(args.log_folder, algo)
