@@ -635,3 +635,43 @@ def test_a_group_holds_the_seeds_its_experiment_declares(tmp_path: Path) -> None
     # merge-table3's alpha-0 run (seed 5) is left out; the PEARL+ run it shares with merge-table1 stays
     table3 = groups[("merge-table3", "cpu", "highway-merge")]
     assert list(table3) == ["pearlplus-fixed-entropy"] and list(table3["pearlplus-fixed-entropy"]) == [0]
+
+
+def test_remeasure_repeats_the_runs_own_meta_test_and_adds_draws(results: Path, tmp_path: Path) -> None:
+    """`reproduce remeasure` (Table I's larger meta-test, issue 36): on the run's own design it reproduces result.json's
+    numbers from model.zip alone; on a larger one the k = 0 row rests on every prior draw and the adapted pass's k = 0
+    rows equal the prior pass's (common random numbers); a run with a record is skipped unless forced."""
+    import json
+    import shutil
+
+    from sb3_pearl.evaluation.statistics import summarize
+    from sb3_pearl.experiments.table1_rules import RemeasureConfig
+    from sb3_pearl.reproduce.remeasure import remeasure_experiments
+
+    folder = tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
+    shutil.copytree(run_folder(results, "alpha-0.1"), folder)
+    result = json.loads((folder / "result.json").read_text())
+    settings = result["budget"]["meta_test"]
+    same = RemeasureConfig(settings["n_tasks"], settings["n_repeats"], settings["n_repeats"], settings["n_adapt"], "same.json")
+    written = remeasure_experiments(tmp_path, ["safe-point"], same, seeds=[0], echo=lambda _: None)
+    assert written == [folder / "same.json"]  # alpha-0's folder has no finished run here: nothing else
+    record = json.loads((folder / "same.json").read_text())
+    assert record["summary"][0] == result["meta_test"]["summary"][0]
+    assert [e["return_mean"] for e in record["summary"][1:]] == [e["return_mean"] for e in result["meta_test"]["summary"][1:]]
+    assert record["crn_check"]["matched"] and record["crn_check"]["compared"] == settings["n_tasks"] * settings["n_repeats"]
+
+    larger = RemeasureConfig(settings["n_tasks"] + 2, prior_repeats=3, adapted_repeats=1, n_adapt=2, file_name="l.json")
+    assert remeasure_experiments(tmp_path, ["safe-point"], larger, seeds=[0], echo=lambda _: None) == [folder / "l.json"]
+    record = json.loads((folder / "l.json").read_text())
+    prior_rows = record["prior"]["rows"]
+    assert len(prior_rows) == (settings["n_tasks"] + 2) * 3 and {row["k"] for row in prior_rows} == {0}
+    assert [e["k"] for e in record["summary"]] == [0, 1, 2]
+    assert record["summary"][0]["violation_rate"] == summarize(prior_rows)[0]["violation_rate"]
+    assert record["crn_check"] == {"compared": settings["n_tasks"] + 2, "mismatched": 0, "matched": True}
+    assert (record["experiment"], record["variant"], record["seed"]) == ("safe-point", "alpha-0.1", 0)
+    before = (folder / "l.json").stat().st_mtime_ns
+    assert remeasure_experiments(tmp_path, ["safe-point"], larger, seeds=[0], echo=lambda _: None) == []
+    assert (folder / "l.json").stat().st_mtime_ns == before
+    assert remeasure_experiments(tmp_path, ["safe-point"], larger, seeds=[0], force=True, echo=lambda _: None)
+    bad = run_in_process(main, "remeasure", "--results-dir", str(tmp_path / "nowhere"), check=False)
+    assert bad.returncode == 2 and "does not exist" in bad.stderr

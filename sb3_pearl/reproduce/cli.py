@@ -114,6 +114,17 @@ def build_parser() -> argparse.ArgumentParser:
     measure.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
     measure.add_argument("--force", action="store_true", help="measure runs that already have the measures again")
 
+    remeasure = sub.add_parser(
+        "remeasure",
+        help="meta-test finished runs again on Table I's larger design (meta_test_large.json beside result.json)",
+    )
+    remeasure.add_argument(
+        "experiments", nargs="*", help="experiments (default: the Highway-Merge tables the Table I rules name)"
+    )
+    remeasure.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 (default: each experiment's)")
+    remeasure.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
+    remeasure.add_argument("--force", action="store_true", help="remeasure runs that already have the record")
+
     one = sub.add_parser("run-one", help=argparse.SUPPRESS)  # what each child process of `run` executes
     one.add_argument("--experiment", required=True)
     one.add_argument("--family", required=True)
@@ -245,6 +256,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                 get_experiment(name)  # an unknown name fails here, with the known ones
             written = measure_results(args.results_dir, args.experiments or None, args.force)
             print(f"{len(written)} run(s) measured")
+            return 0
+        if args.command == "remeasure":
+            import torch as th
+
+            from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE, REMEASURED_EXPERIMENTS
+            from sb3_pearl.reproduce.remeasure import remeasure_experiments
+
+            th.set_num_threads(1)
+            names = args.experiments or list(REMEASURED_EXPERIMENTS)
+            for name in names:
+                get_experiment(name)  # an unknown name fails here, with the known ones
+            chosen = parse_seeds(args.seeds) if args.seeds is not None else None
+            written = remeasure_experiments(args.results_dir, names, MERGE_REMEASURE, chosen, args.force)
+            print(f"{len(written)} run(s) remeasured")
             return 0
     except ValueError as error:
         print(f"error: {error}", file=sys.stderr)

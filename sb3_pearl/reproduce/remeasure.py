@@ -1,0 +1,188 @@
+"""``reproduce remeasure``: a larger meta-test of committed models, without retraining (issue 36, run 1).
+
+A run's own meta-test rests on 200 k = 0 trajectories (20 held-out tasks x 10 prior draws); at violation rates of
+1-10% that is a per-seed interval of +-3 to +-4 points, as large as the effect Table I is about. This command loads a
+finished run's ``model.zip`` and meta-tests it again on the larger design of a
+:class:`~sb3_pearl.experiments.table1_rules.RemeasureConfig` (two passes on the same held-out tasks, with the
+experiment's eval seed and common random numbers, as every run's own meta-test), and writes the record beside the run's
+``result.json`` as ``meta_test_large.json`` (atomically). result.json is not touched: the old numbers stay where they
+were, and the report shows both.
+
+The prior pass and the adapted pass share their first draws: the adapted pass's k = 0 rows are the prior pass's
+repeats 0..adapted_repeats-1 again (same env seeds, same z0). The record states whether they matched
+(``crn_check``), a free check that the meta-test is deterministic on this machine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+
+from sb3_pearl.evaluation.held_out import meta_test_record, model_test_tasks, run_meta_test
+from sb3_pearl.evaluation.meta_test import MetaTestResult, json_value
+from sb3_pearl.evaluation.statistics import summarize
+from sb3_pearl.experiments.table1_rules import RemeasureConfig
+from sb3_pearl.reproduce.layout import MODEL_FILE, RESULT_FILE, cpu_info, package_versions, read_result, write_json_atomic
+
+MATCHED_COLUMNS = ("task", "repeat", "k", "return", "cost", "length", "violated")
+
+
+def remeasure_model(model: Any, env: gym.Env, eval_seed: int, config: RemeasureConfig, what: str = "") -> dict[str, Any]:
+    """
+    The larger meta-test of one model (module docstring).
+
+    :param model: a trained model with the adaptation API
+    :param env: the evaluation env (the family's, with the run's env kwargs)
+    :param eval_seed: the experiment's eval seed (tasks, env resets and prior draws)
+    :param config: the design
+    :param what: the run, for messages
+    :return: the record: ``config``, ``summary`` (k = 0 from the prior pass, k >= 1 from the adapted pass), ``prior`` and
+        ``adapted`` (each pass's meta-test record without traces), ``crn_check``, ``wall_time_s``
+    """
+    start = time.time()
+    tasks = model_test_tasks(model, env, config.n_tasks, eval_seed, what)
+    prior = run_meta_test(
+        model, env, tasks, {"n_adapt": 0, "n_repeats": config.prior_repeats, "deterministic": True}, eval_seed, trace_keys=()
+    )
+    adapted = run_meta_test(
+        model,
+        env,
+        tasks,
+        {"n_adapt": config.n_adapt, "n_repeats": config.adapted_repeats, "deterministic": True},
+        eval_seed,
+        trace_keys=(),
+    )
+    return json_value(
+        {
+            "config": dataclasses.asdict(config),
+            "eval_seed": eval_seed,
+            "summary": combined_summary(prior, adapted),
+            "crn_check": crn_check(prior, adapted),
+            "prior": meta_test_record(prior),
+            "adapted": meta_test_record(adapted),
+            "wall_time_s": time.time() - start,
+        }
+    )
+
+
+def combined_summary(prior: MetaTestResult, adapted: MetaTestResult) -> list[dict[str, Any]]:
+    """The summary per k: k = 0 over the prior pass's rows, k >= 1 over the adapted pass's (its k = 0 dropped)."""
+    info_keys = prior.info_keys
+    k0 = [entry for entry in summarize(prior.rows, extra_keys=info_keys) if entry["k"] == 0]
+    later = [entry for entry in summarize(adapted.rows, extra_keys=info_keys) if entry["k"] >= 1]
+    for entry in later:  # cumulative counts over a sequence live in the adapted pass only; say so
+        entry["cum_violations_source"] = "adapted pass"
+    return [*k0, *later]
+
+
+def crn_check(prior: MetaTestResult, adapted: MetaTestResult) -> dict[str, Any]:
+    """Whether the adapted pass's k = 0 rows equal the prior pass's rows of the same (task, repeat)."""
+    first = {(row["task"], row["repeat"]): row for row in prior.rows if int(row["k"]) == 0}
+    compared = mismatched = 0
+    for row in adapted.rows:
+        if int(row["k"]) != 0:
+            continue
+        twin = first.get((row["task"], row["repeat"]))
+        if twin is None:
+            continue
+        compared += 1
+        mismatched += any(row.get(key) != twin.get(key) for key in MATCHED_COLUMNS)
+    return {"compared": compared, "mismatched": mismatched, "matched": compared > 0 and mismatched == 0}
+
+
+def remeasure_run(folder: Path, config: RemeasureConfig, force: bool = False) -> Path | None:
+    """
+    Remeasure the finished run in ``folder`` (``result.json`` present) unless its record exists (``force``: again).
+
+    :param folder: the run folder
+    :param config: the design
+    :param force: measure again when the record exists
+    :return: the record written, or None (no finished run, or already measured)
+    """
+    from sb3_pearl.experiments import get_experiment
+    from sb3_pearl.registry import algorithm_class
+
+    out = folder / config.file_name
+    if not (folder / RESULT_FILE).is_file() or (out.is_file() and not force):
+        return None
+    result = read_result(folder / RESULT_FILE)
+    experiment = get_experiment(result["experiment"])
+    family = experiment.family(result["family"])
+    algo = experiment.variant(result["variant"]).algo
+    env_kwargs = dict(result.get("spec", {}).get("family", {}).get("env_kwargs") or family.env_kwargs)
+    model = algorithm_class(algo).load(folder / MODEL_FILE, device="cpu")  # type: ignore[attr-defined]
+    env = gym.make(family.env_id, **env_kwargs)
+    try:
+        record = remeasure_model(model, env, int(result["eval_seed"]), config, what=str(folder))
+    finally:
+        env.close()
+    record.update(
+        {
+            "experiment": result["experiment"],
+            "family": result["family"],
+            "variant": result["variant"],
+            "seed": result["seed"],
+            "env_kwargs": env_kwargs,
+            "versions": package_versions(),
+            "cpu": cpu_info(),
+        }
+    )
+    write_json_atomic(out, record)
+    return out
+
+
+def remeasure_experiments(
+    results_dir: str | Path,
+    experiments: Sequence[str],
+    config: RemeasureConfig,
+    seeds: Sequence[int] | None = None,
+    force: bool = False,
+    echo: Callable[[str], None] = print,
+) -> list[Path]:
+    """
+    Remeasure every finished run the experiments declare (their shared variants in their owners' folders), under
+    each run's lock (a run being trained is skipped and reported).
+
+    :param results_dir: root of the results layout
+    :param experiments: experiment names
+    :param config: the design
+    :param seeds: model seeds (None: each experiment's declared seeds)
+    :param force: measure runs that have a record again
+    :param echo: progress output
+    :return: the records written
+    """
+    from sb3_pearl.experiments import get_experiment
+    from sb3_pearl.reproduce.layout import RunKey, run_dir
+    from sb3_pearl.reproduce.ownership import RunLockedError, run_lock
+
+    root = Path(results_dir)
+    if not root.is_dir():
+        raise ValueError(f"results dir {root} does not exist or is not a folder: pass --results-dir")
+    folders: dict[Path, None] = {}  # shared runs appear once, in declaration order
+    for name in experiments:
+        experiment = get_experiment(name)
+        for family in experiment.families:
+            for variant in experiment.variants:
+                for seed in experiment.seeds if seeds is None else seeds:
+                    key = RunKey(experiment.owner(variant.name), family.name, variant.name, seed)
+                    folders[run_dir(root, key)] = None
+    written: list[Path] = []
+    for folder in folders:
+        if not (folder / RESULT_FILE).is_file():
+            continue
+        try:
+            with run_lock(folder, wait_s=0.0):
+                start = time.time()
+                out = remeasure_run(folder, config, force)
+        except RunLockedError as error:
+            echo(f"skip {folder}: {error}")
+            continue
+        if out is not None:
+            written.append(out)
+            echo(f"remeasured {folder} in {time.time() - start:.0f} s")
+    return written
