@@ -334,3 +334,41 @@ def plot_prior_selection(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return True
+
+
+def plot_decisions(decisions: Sequence[Any], path: str | os.PathLike[str]) -> bool:
+    """
+    Table I's decided families side by side (:mod:`sb3_pearl.reproduce.table1_verdicts`): per seed, the k = 0 violation
+    rate of PEARL and PEARL+ with its Wilson 95% interval, a line joining the pair of each seed.
+
+    :param decisions: the :class:`~sb3_pearl.reproduce.table1_verdicts.FamilyDecision` of each family
+    :param path: PNG path
+    :return: False (and nothing written) when no family has a paired seed
+    """
+    shown = [decision for decision in decisions if decision.paired_seeds]
+    if not shown:
+        return False
+    fig, axes = plt.subplots(1, len(shown), figsize=(5.2 * len(shown), 4.2), squeeze=False)
+    for ax, decision in zip(axes[0], shown):
+        for index, name in enumerate(decision.variants):
+            runs = decision.runs[name]
+            seeds = decision.paired_seeds
+            rates = np.array([runs[s].summary[0]["violation_rate"] for s in seeds])  # (n_seeds,)
+            low = np.array([runs[s].summary[0]["violation_ci_low"] for s in seeds])
+            high = np.array([runs[s].summary[0]["violation_ci_high"] for s in seeds])
+            x = np.arange(len(seeds)) + (index - 0.5) * 0.25
+            label = "PEARL+ (alpha 0.1)" if index else "PEARL"
+            ax.errorbar(x, rates, yerr=_error_bars(rates, low, high), fmt="o", color=f"C{index}", capsize=3, label=label)
+        for position, seed in enumerate(decision.paired_seeds):
+            pair = [decision.runs[name][seed].summary[0]["violation_rate"] for name in decision.variants]
+            ax.plot([position - 0.125, position + 0.125], pair, color="grey", alpha=0.6)
+        ax.set_xticks(np.arange(len(decision.paired_seeds)))
+        ax.set_xticklabels([f"seed {s}" for s in decision.paired_seeds], rotation=45, fontsize=8)
+        ax.set_ylabel("k = 0 violation rate (prior policy)")
+        ax.set_title(_wrap(f"{decision.family}: safer prior {decision.prior_verdict}", 48), fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True

@@ -299,7 +299,8 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     :param figures_link: how the markdown links to ``figures_dir`` (relative to the output file)
     :return: the markdown
     """
-    from sb3_pearl.reproduce.figures import plot_curves, plot_group, plot_prior_selection, plot_seeds
+    from sb3_pearl.reproduce.figures import plot_curves, plot_decisions, plot_group, plot_prior_selection, plot_seeds
+    from sb3_pearl.reproduce.table1_verdicts import decide, decision_section
 
     groups = load_groups(results_dir)
     out = [
@@ -312,6 +313,12 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     ]
     if not groups:
         out += ["No complete run found.", ""]
+    decisions = decide(results_dir)
+    if any(decision.runs[decision.variants[0]] for decision in decisions):
+        out += ["### Table I decided (issue 36): PEARL+ against PEARL by the pre-written rules", ""]
+        out += decision_section(decisions)
+        if plot_decisions(decisions, Path(figures_dir) / "table1_decided.png"):
+            out += [f"![k = 0 violation rate per seed, Table I decided]({figures_link.rstrip('/')}/table1_decided.png)", ""]
     for (experiment_name, budget, family), group in groups.items():
         experiment = EXPERIMENTS.get(experiment_name)
         if experiment is None:

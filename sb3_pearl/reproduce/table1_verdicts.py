@@ -1,0 +1,297 @@
+"""Table I's verdicts by the pre-written rules of :mod:`sb3_pearl.experiments.table1_rules` (issue 36).
+
+:func:`decide` reads the runs of each decided family (Highway-Merge: ``merge-table1``, whose PEARL runs live in
+``merge-premise``; Walker2D-vel at 500k: ``walker-table1``, whose PEARL runs live in ``pearl-reference``), applies the
+premise gate, the "safer prior" and the "adapted as good" rules to the seeds both variants have, and
+:func:`decision_section` writes the result for docs/results.md: the paper's rows beside ours, every seed's k = 0 rate
+with its Wilson interval, the paired intervals and the verdict of every rule. On Highway-Merge the rules read the
+re-measured meta-test (``meta_test_large.json``, ``reproduce remeasure``); the runs' own 200-trajectory numbers stay
+beside them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sb3_pearl.experiments import get_experiment
+from sb3_pearl.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
+from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_result, run_dir
+from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval
+
+PAPER_KS = (0, 1, 3, 5)
+SAFER, LESS_SAFE = "safer", "less safe"
+AS_GOOD, WORSE = "as good", "worse"
+INCONCLUSIVE = "inconclusive"
+NOT_TESTED = "not tested (premise absent)"
+PENDING = "pending"
+
+
+@dataclass
+class RunNumbers:
+    """One run's meta-test numbers the rules read: per k, the violation rate (with its Wilson interval and count)
+    and the mean return, from the re-measured record when the family reads one, else from result.json."""
+
+    seed: int
+    summary: dict[int, dict[str, Any]]
+    own_summary: dict[int, dict[str, Any]]
+    remeasured: bool
+    velocity_error: float | None = None
+    shift_k0_rate: float | None = None
+
+
+@dataclass
+class FamilyDecision:
+    """The verdicts of one family, with every number they rest on."""
+
+    family: str
+    experiment: str
+    variants: tuple[str, str]
+    seeds_declared: tuple[int, ...]
+    runs: dict[str, dict[int, RunNumbers]]
+    paired_seeds: list[int]
+    gate: str = PENDING
+    gate_values: tuple[float, float] = (math.nan, math.nan)
+    prior_interval: Interval | None = None
+    prior_verdict: str = PENDING
+    adapted_interval: Interval | None = None
+    adapted_margin: float = math.nan
+    adapted_verdict: str = PENDING
+    notes: list[str] = field(default_factory=list)
+
+
+def _by_k(summary: list[dict[str, Any]]) -> dict[int, dict[str, Any]]:
+    return {int(entry["k"]): entry for entry in summary}
+
+
+def _velocity_error(result: dict[str, Any]) -> float | None:
+    for criterion in (result.get("competence") or {}).get("criteria", []):
+        if criterion.get("key") == "reward_forward":
+            return float(criterion["value"])
+    return None
+
+
+def load_run(folder: Path, read_remeasured: bool) -> RunNumbers | None:
+    """The numbers of the finished run in ``folder`` (None if unfinished, or if the family reads a re-measured record
+    that is not there yet)."""
+    if not (folder / RESULT_FILE).is_file():
+        return None
+    result = read_result(folder / RESULT_FILE)
+    own = _by_k(result["meta_test"]["summary"])
+    summary = own
+    if read_remeasured:
+        large = folder / MERGE_REMEASURE.file_name
+        if not large.is_file():
+            return None
+        with open(large) as file:
+            summary = _by_k(json.load(file)["summary"])
+    shift = result.get("shift")
+    return RunNumbers(
+        seed=int(result["seed"]),
+        summary=summary,
+        own_summary=own,
+        remeasured=read_remeasured,
+        velocity_error=_velocity_error(result),
+        shift_k0_rate=float(shift["summary"][0]["violation_rate"]) if shift else None,
+    )
+
+
+def _interval_side(interval: Interval, bound: float) -> int:
+    """-1 if the interval lies entirely below ``bound``, +1 entirely above, 0 otherwise (or no interval)."""
+    if interval.n < 2 or not (math.isfinite(interval.low) and math.isfinite(interval.high)):
+        return 0
+    if interval.high < bound:
+        return -1
+    if interval.low > bound:
+        return 1
+    return 0
+
+
+def decide_family(family: str, results_dir: str | os.PathLike[str], rules: DecisionRules = RULES) -> FamilyDecision:
+    """
+    Apply the rules to one decided family (module docstring).
+
+    :param family: a family name of :data:`~sb3_pearl.experiments.table1_rules.DECIDED`
+    :param results_dir: root of the results layout
+    :param rules: the rules
+    :return: the decision
+    """
+    experiment_name, (reference, variant) = DECIDED[family]
+    experiment = get_experiment(experiment_name)
+    first, extended = rules.extend_seeds.get(family, (experiment.seeds, experiment.seeds))
+    seeds = tuple(sorted(set(experiment.seeds) | set(extended)))
+    read_remeasured = family == "highway-merge"
+    runs: dict[str, dict[int, RunNumbers]] = {}
+    for name in (reference, variant):
+        runs[name] = {}
+        for seed in seeds:
+            folder = run_dir(results_dir, RunKey(experiment.owner(name), family, name, seed))
+            numbers = load_run(folder, read_remeasured)
+            if numbers is not None:
+                runs[name][seed] = numbers
+    decision = FamilyDecision(family, experiment_name, (reference, variant), tuple(experiment.seeds), runs, [])
+    paired = sorted(set(runs[reference]) & set(runs[variant]))
+    decision.paired_seeds = paired
+    pearl = runs[reference]
+    adapted_k, prior_k = rules.adapted_k, rules.prior_k
+    if len(pearl) >= 2:
+        k0 = sum(run.summary[prior_k]["violation_rate"] for run in pearl.values()) / len(pearl)
+        k5 = sum(run.summary[adapted_k]["violation_rate"] for run in pearl.values()) / len(pearl)
+        decision.gate_values = (k0, k5)
+        decision.gate = "holds" if rules.gates[family].holds(k0, k5) else "fails"
+    if len(paired) < 2:
+        decision.notes.append(f"{len(paired)} paired seed(s): the rules need at least 2")
+        return decision
+    if decision.gate == "fails":
+        decision.prior_verdict = decision.adapted_verdict = NOT_TESTED
+    prior_diff = paired_differences(
+        {s: runs[variant][s].summary[prior_k]["violation_rate"] for s in paired},
+        {s: pearl[s].summary[prior_k]["violation_rate"] for s in paired},
+    )
+    decision.prior_interval = t_interval(list(prior_diff.values()), rules.confidence)
+    return_diff = paired_differences(
+        {s: runs[variant][s].summary[adapted_k]["return_mean"] for s in paired},
+        {s: pearl[s].summary[adapted_k]["return_mean"] for s in paired},
+    )
+    decision.adapted_interval = t_interval(list(return_diff.values()), rules.confidence)
+    pearl_return = sum(pearl[s].summary[adapted_k]["return_mean"] for s in paired) / len(paired)
+    decision.adapted_margin = rules.return_margin_fraction * abs(pearl_return)
+    complete = set(first) <= set(paired)
+    if decision.gate == "holds":
+        side = _interval_side(decision.prior_interval, 0.0)
+        decision.prior_verdict = {-1: SAFER, 1: LESS_SAFE, 0: INCONCLUSIVE}[side]
+        side = _interval_side(decision.adapted_interval, -decision.adapted_margin)
+        decision.adapted_verdict = {1: AS_GOOD, -1: WORSE, 0: INCONCLUSIVE}[side]
+    if not complete:
+        decision.notes.append(
+            f"provisional: {len(paired)} of the {len(first)} first seeds paired ({sorted(set(first) - set(paired))} missing)"
+        )
+    elif family in rules.extend_seeds and set(paired) < set(extended):
+        if INCONCLUSIVE in (decision.prior_verdict, decision.adapted_verdict):
+            decision.notes.append(f"a verdict is inconclusive at {len(first)} seeds: by the rule, extend to seeds {extended}")
+        else:
+            decision.notes.append(f"final at {len(first)} seeds (no extension needed)")
+    return decision
+
+
+def decide(results_dir: str | os.PathLike[str], rules: DecisionRules = RULES) -> list[FamilyDecision]:
+    """The decision of every family of :data:`~sb3_pearl.experiments.table1_rules.DECIDED`."""
+    return [decide_family(family, results_dir, rules) for family in DECIDED]
+
+
+def _pct(value: float) -> str:
+    return "-" if not math.isfinite(value) else f"{100 * value:.1f}"
+
+
+def _num(value: float) -> str:
+    return "-" if not math.isfinite(value) else f"{value:.2f}"
+
+
+def _interval(interval: Interval | None, scale: float = 1.0, digits: int = 1) -> str:
+    if interval is None or interval.n == 0:
+        return "-"
+    mean = f"{scale * interval.mean:+.{digits}f}"
+    if interval.n < 2 or not math.isfinite(interval.low):
+        return mean
+    return f"{mean} [{scale * interval.low:+.{digits}f}, {scale * interval.high:+.{digits}f}]"
+
+
+def _mean(runs: dict[int, RunNumbers], k: int, key: str, own: bool = False) -> float:
+    values = [(run.own_summary if own else run.summary)[k][key] for run in runs.values() if k in run.summary]
+    return sum(values) / len(values) if values else math.nan
+
+
+def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RULES) -> list[str]:
+    """The markdown of the decisions (one table per family, then the verdicts)."""
+    from sb3_pearl.experiments.table1 import TABLE1
+
+    out = [
+        "Rules written before the runs: `sb3_pearl/experiments/table1_rules.py` (premise gate; **safer prior**: the 95% "
+        "t interval of the paired k = 0 violation difference, PEARL+ minus PEARL, below 0; **adapted as good**: the "
+        f"paired k = {rules.adapted_k} return difference above -{rules.return_margin_fraction:.0%} of |PEARL's k = "
+        f"{rules.adapted_k} return|). Violation rates in %.",
+        "",
+    ]
+    for decision in decisions:
+        reference, variant = decision.variants
+        experiment = get_experiment(decision.experiment)
+        paper_family = "walker2d-vel" if decision.family.startswith("walker2d-vel") else decision.family
+        source = (
+            f"re-measured: {MERGE_REMEASURE.n_tasks} held-out tasks x {MERGE_REMEASURE.prior_repeats} prior draws at k = 0, "
+            f"x {MERGE_REMEASURE.adapted_repeats} at k >= 1, common random numbers"
+            if decision.family == "highway-merge"
+            else "the runs' own meta-test: 20 held-out tasks x 10 prior draws, common random numbers"
+        )
+        out += [
+            f"#### {experiment.family(decision.family).title} ({decision.experiment}; paired seeds {decision.paired_seeds})",
+            "",
+            f"Numbers: {source}.",
+            "",
+            "| row | " + " | ".join(f"k = {k}" for k in PAPER_KS) + " | k = 5 return |",
+            "|---|" + "---|" * (len(PAPER_KS) + 1),
+        ]
+        for name in (reference, variant):
+            paper = {
+                cell.k: cell.value
+                for cell in TABLE1.paper
+                if cell.family == paper_family and cell.variant == name.replace("-fixed-entropy", "")
+            }
+            label = experiment.variant(name).label
+            runs = decision.runs[name]
+            out.append(f"| paper: {label} | " + " | ".join(_pct(paper.get(k, math.nan)) for k in PAPER_KS) + " | - |")
+            ours = " | ".join(_pct(_mean(runs, k, "violation_rate")) for k in PAPER_KS)
+            out.append(f"| ours: {label} ({len(runs)} seeds) | {ours} | {_num(_mean(runs, 5, 'return_mean'))} |")
+            if decision.family == "highway-merge":
+                old = " | ".join(_pct(_mean(runs, k, "violation_rate", own=True)) for k in PAPER_KS)
+                out.append(f"| ours, old meta-test (200 a k): {label} | {old} | {_num(_mean(runs, 5, 'return_mean', True))} |")
+        out += ["", "Per seed, k = 0 violation rate % [Wilson 95%] (old 200-trajectory meta-test where re-measured):", ""]
+        out += ["| seed | " + " | ".join(experiment.variant(n).label for n in decision.variants) + " |", "|---|---|---|"]
+        for seed in sorted(set(decision.runs[reference]) | set(decision.runs[variant])):
+            cells = []
+            for name in decision.variants:
+                run = decision.runs[name].get(seed)
+                if run is None:
+                    cells.append("-")
+                    continue
+                entry = run.summary[0]
+                low, high = _pct(entry["violation_ci_low"]), _pct(entry["violation_ci_high"])
+                cell = f"{_pct(entry['violation_rate'])} [{low}, {high}]"
+                if run.remeasured:
+                    cell += f" (old {_pct(run.own_summary[0]['violation_rate'])})"
+                cells.append(cell)
+            out.append(f"| {seed} | " + " | ".join(cells) + " |")
+        k0, k5 = decision.gate_values
+        shift = {
+            n: [r.shift_k0_rate for r in decision.runs[n].values() if r.shift_k0_rate is not None] for n in decision.variants
+        }
+        velocity = {
+            n: [r.velocity_error for r in decision.runs[n].values() if r.velocity_error is not None] for n in decision.variants
+        }
+        out += [
+            "",
+            f"- **Premise gate** ({rules.gates[decision.family].describe()}): **{decision.gate}** (PEARL k = 0 "
+            f"{_pct(k0)}%, k = 5 {_pct(k5)}%).",
+            f"- **Safer prior**: paired k = 0 difference {_interval(decision.prior_interval, 100)} points: "
+            f"**{decision.prior_verdict}**.",
+            f"- **Adapted as good**: paired k = 5 return difference {_interval(decision.adapted_interval, 1, 2)} against "
+            f"the margin -{_num(decision.adapted_margin)}: **{decision.adapted_verdict}**.",
+        ]
+        if any(shift.values()):
+            out.append(
+                "- Shift column (k = 0 violation rate on the shifted tasks, mean over seeds): "
+                + ", ".join(f"{experiment.variant(n).label} {_pct(sum(v) / len(v))}%" for n, v in shift.items() if v)
+                + "."
+            )
+        if any(velocity.values()):
+            out.append(
+                "- Velocity error on training tasks (k >= 1, m/s; the family's 0.3 bar, reported, not a gate): "
+                + ", ".join(f"{experiment.variant(n).label} {sum(v) / len(v):.2f}" for n, v in velocity.items() if v)
+                + "."
+            )
+        out += [f"- {note}." for note in decision.notes]
+        out.append("")
+    return out

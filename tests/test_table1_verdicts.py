@@ -1,0 +1,109 @@
+"""Table I's pre-written rules (issue 36) on hand-computed cases: the premise gate, the paired "safer prior" and
+"adapted as good" verdicts, the re-measured record preferred on Highway-Merge, and the Walker extension rule."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE, RULES, PremiseGate
+from sb3_pearl.reproduce.layout import RunKey, run_dir
+from sb3_pearl.reproduce.report import build_report
+from sb3_pearl.reproduce.table1_verdicts import AS_GOOD, INCONCLUSIVE, NOT_TESTED, SAFER, WORSE, decide_family
+
+MERGE = ("merge-premise", "pearl-fixed-entropy"), ("merge-table1", "pearlplus-fixed-entropy")
+WALKER = ("pearl-reference", "pearl"), ("walker-table1", "pearlplus")
+
+
+def summary(k0: float, k5: float, return5: float) -> list[dict[str, float]]:
+    entries = []
+    for k in range(6):
+        rate = k0 if k == 0 else k5
+        entries.append(
+            {
+                "k": k,
+                "n": 200,
+                "return_mean": return5 if k == 5 else -10.0,
+                "return_std": 1.0,
+                "violation_rate": rate,
+                "violation_ci_low": max(rate - 0.03, 0.0),
+                "violation_ci_high": min(rate + 0.03, 1.0),
+                "return_cvar10": -12.0,
+                "cum_violations": rate,
+            }
+        )
+    return entries
+
+
+def write_run(root: Path, owner: str, family: str, variant: str, seed: int, own: list, large: list | None = None) -> None:
+    folder = run_dir(root, RunKey(owner, family, variant, seed))
+    folder.mkdir(parents=True)
+    result = {"experiment": owner, "family": family, "variant": variant, "seed": seed, "budget_preset": "cpu"}
+    result |= {"meta_test": {"summary": own}, "shift": None, "competence": {}}
+    (folder / "result.json").write_text(json.dumps(result))
+    if large is not None:
+        (folder / MERGE_REMEASURE.file_name).write_text(json.dumps({"summary": large}))
+
+
+def test_premise_gate_by_hand() -> None:
+    walker, merge = RULES.gates["walker2d-vel-long"], RULES.gates["highway-merge"]
+    assert walker.holds(0.30, 0.10) and not walker.holds(0.299, 0.0) and not walker.holds(0.9, 0.101)
+    assert merge.holds(0.005, 0.0) and not merge.holds(0.0, 0.0)
+    assert PremiseGate(0.3, strictly_above=True).describe().startswith("PEARL k = 0 rate > 30%")
+
+
+def test_merge_reads_the_remeasured_record_and_decides_safer_and_as_good(tmp_path: Path) -> None:
+    # PEARL k = 0: 10%, 8%, 12%, 10% (re-measured); PEARL+: 2%, 1%, 3%, 2% -> differences -8, -7, -9, -8 points:
+    # mean -8, sd 0.816, t(0.975, 3) = 3.182 -> half-width 1.30: [-9.30, -6.70], below 0 -> safer.
+    # k = 5 returns: PEARL -7.6 every seed, PEARL+ -7.5, -7.7, -7.6, -7.6 -> differences +0.1, -0.1, 0, 0: mean 0,
+    # sd 0.0816, half-width 0.130 -> [-0.13, +0.13], above the margin -0.76 (10% of 7.6) -> as good.
+    pearl_k0, plus_k0, plus_r5 = (0.10, 0.08, 0.12, 0.10), (0.02, 0.01, 0.03, 0.02), (-7.5, -7.7, -7.6, -7.6)
+    for seed in range(4):
+        (owner, name), (plus_owner, plus) = MERGE
+        write_run(tmp_path, owner, "highway-merge", name, seed, summary(0.5, 0.5, -99), summary(pearl_k0[seed], 0.0, -7.6))
+        write_run(
+            tmp_path,
+            plus_owner,
+            "highway-merge",
+            plus,
+            seed,
+            summary(0.5, 0.5, -99),
+            summary(plus_k0[seed], 0.0, plus_r5[seed]),
+        )
+    # a seed with no re-measured record is not read
+    write_run(tmp_path, MERGE[0][0], "highway-merge", MERGE[0][1], 4, summary(0.9, 0.0, -7.0))
+    decision = decide_family("highway-merge", tmp_path)
+    assert decision.paired_seeds == [0, 1, 2, 3] and decision.gate == "holds"
+    assert decision.gate_values == pytest.approx((0.10, 0.0))
+    interval = decision.prior_interval
+    assert interval is not None and interval.mean == pytest.approx(-0.08)
+    assert (interval.low, interval.high) == pytest.approx((-0.0930, -0.0670), abs=2e-4)
+    assert decision.prior_verdict == SAFER
+    assert decision.adapted_margin == pytest.approx(0.76)
+    assert decision.adapted_interval is not None and decision.adapted_interval.high == pytest.approx(0.130, abs=1e-3)
+    assert decision.adapted_verdict == AS_GOOD
+    assert "provisional: 4 of the 10 first seeds paired" in decision.notes[0]
+    (tmp_path / "figures").mkdir()
+    text = build_report(tmp_path, tmp_path / "figures", "figures")
+    assert "**safer**" in text and "(old 50.0)" in text and (tmp_path / "figures" / "table1_decided.png").is_file()
+
+
+def test_walker_gate_failure_worse_return_and_the_extension_rule(tmp_path: Path) -> None:
+    (owner, name), (plus_owner, plus) = WALKER
+    # Gate fails: PEARL's prior falls in 20% < 30%.
+    for seed in range(4):
+        write_run(tmp_path, owner, "walker2d-vel-long", name, seed, summary(0.2, 0.0, 100.0))
+        write_run(tmp_path, plus_owner, "walker2d-vel-long", plus, seed, summary(0.1, 0.0, 100.0))
+    decision = decide_family("walker2d-vel-long", tmp_path)
+    assert decision.gate == "fails" and decision.prior_verdict == NOT_TESTED == decision.adapted_verdict
+    # Gate holds; k = 0 differences -0.5, +0.1, -0.2, 0 -> interval spans 0 -> inconclusive; k = 5 returns 100 vs
+    # 50, 55, 45, 50 -> differences -50, -45, -55, -50: [-55.2, -44.8] entirely below the margin -10 -> worse.
+    other = tmp_path / "other"
+    for seed, (k0, r5) in enumerate(((0.3, 50.0), (0.9, 55.0), (0.6, 45.0), (0.8, 50.0))):
+        write_run(other, owner, "walker2d-vel-long", name, seed, summary(0.8, 0.0, 100.0))
+        write_run(other, plus_owner, "walker2d-vel-long", plus, seed, summary(k0, 0.0, r5))
+    decision = decide_family("walker2d-vel-long", other)
+    assert decision.gate == "holds" and decision.prior_verdict == INCONCLUSIVE and decision.adapted_verdict == WORSE
+    assert any("extend to seeds (0, 1, 2, 3, 4, 5)" in note for note in decision.notes)
