@@ -146,3 +146,19 @@ def test_the_graph_sees_function_level_imports() -> None:
 
 def test_pearlplus_extends_pearl() -> None:
     assert issubclass(PEARLPlus, PEARL)
+
+
+@pytest.mark.parametrize("package", ["sb3_pearl.pearl", "sb3_pearl.finetune", "sb3_pearl.maml"])
+def test_an_algorithm_imports_only_algorithm_code(package: str) -> None:
+    """Importing an algorithm (in a fresh interpreter) loads none of its observers: no module of the diagnostics, the
+    evaluation layer, the reproduction harness or the zoo CLI (issue 39, seam 4)."""
+    import subprocess
+    import sys
+
+    code = (
+        f"import sys, {package}\n"
+        "print(' '.join(m for m in sys.modules if m.startswith('sb3_pearl.') and any(part in m.split('.') for part in "
+        "('diagnostics', 'evaluation', 'reproduce', 'zoo'))))"
+    )
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert loaded == [], f"importing {package} loads {loaded}"

@@ -34,7 +34,7 @@ from sb3_pearl.envs.task_protocol import Task
 if TYPE_CHECKING:
     from stable_baselines3.common.base_class import BaseAlgorithm
 
-    from sb3_pearl.evaluation.progress import TrainingPlan
+    from sb3_pearl.common.type_aliases import TrainingPlan
 
     _AlgorithmBase = BaseAlgorithm
 else:

@@ -46,3 +46,22 @@ class PEARLLosses(NamedTuple):
     ent_coef: th.Tensor  # the entropy coefficient used in this step
     z_mean: th.Tensor  # (T, latent_dim) posterior means, for logging
     z_var: th.Tensor  # (T, latent_dim) posterior variances, for logging
+
+
+class TrainingPlan(NamedTuple):
+    """
+    What ``learn(total_timesteps)`` will still do.
+
+    :param env_steps: env steps to collect
+    :param gradient_steps: gradient steps to take
+    :param initial_steps: env steps collected before the first gradient step (the model is untrained until then)
+    :param first_updates: gradient steps after which the cost per gradient step is measured (the first iteration's)
+    :param note: what the collection-only start is, e.g. ``"iteration 0: 2,000 steps with z from the prior on each
+        of 100 training tasks"``
+    """
+
+    env_steps: int
+    gradient_steps: int
+    initial_steps: int = 0
+    first_updates: int = 1
+    note: str = ""

@@ -18,33 +18,16 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, NamedTuple
+from typing import Any
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskID, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from stable_baselines3.common.callbacks import ProgressBarCallback
 
+from sb3_pearl.common.type_aliases import TrainingPlan
+
 DAY_S = 86_400.0
 NON_TERMINAL_WIDTH = 140
-
-
-class TrainingPlan(NamedTuple):
-    """
-    What ``learn(total_timesteps)`` will still do.
-
-    :param env_steps: env steps to collect
-    :param gradient_steps: gradient steps to take
-    :param initial_steps: env steps collected before the first gradient step (the model is untrained until then)
-    :param first_updates: gradient steps after which the cost per gradient step is measured (the first iteration's)
-    :param note: what the collection-only start is, e.g. ``"iteration 0: 2,000 steps with z from the prior on each
-        of 100 training tasks"``
-    """
-
-    env_steps: int
-    gradient_steps: int
-    initial_steps: int = 0
-    first_updates: int = 1
-    note: str = ""
 
 
 def format_duration(seconds: float) -> str:

@@ -41,8 +41,8 @@ from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin
 from sb3_pearl.common.tasks import env_time_limit
+from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
-from sb3_pearl.evaluation.progress import TrainingPlan
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
 
 SelfFineTune = TypeVar("SelfFineTune", bound="FineTune")

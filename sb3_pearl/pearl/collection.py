@@ -22,7 +22,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.divergence import check_env_step, check_finite_actions
-from sb3_pearl.evaluation.progress import TrainingPlan
+from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.pearl.returns import PendingPiece, cut_before_overwrite, finish_open_pieces, record_row, start_piece
 
 if TYPE_CHECKING:

@@ -27,9 +27,8 @@ from sb3_pearl.common.divergence import NonFiniteUpdateGuard
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, check_buffer_tasks, read_replay_buffer
 from sb3_pearl.common.precision import resolve_bf16
-from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
+from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
-from sb3_pearl.evaluation.progress import TrainingPlan
 from sb3_pearl.pearl.adaptation import PosteriorAdaptationMixin
 from sb3_pearl.pearl.arguments import check_pearl_arguments
 from sb3_pearl.pearl.collection import (
@@ -40,7 +39,7 @@ from sb3_pearl.pearl.collection import (
     requeue_open_segments,
     start_iteration,
 )
-from sb3_pearl.pearl.diagnostics import record_gradient_conflict
+from sb3_pearl.pearl.gradient_conflict import record_gradient_conflict
 from sb3_pearl.pearl.losses import LossSettings, compute_losses
 from sb3_pearl.pearl.policies import PEARLPolicy
 from sb3_pearl.pearl.returns import finish_open_pieces
