@@ -82,7 +82,8 @@ def test_non_editable_install_runs_from_anywhere(tmp_path: Path) -> None:
     "module, argv, status, stream, text",
     [
         ("sb3_pearl.train", ["--help"], 0, "out", "--budget PRESET"),
-        ("sb3_pearl.zoo", [], 2, "err", "python -m sb3_pearl.train"),
+        ("sb3_pearl.zoo", [], 0, "out", "python -m sb3_pearl.train"),
+        ("sb3_pearl.zoo", ["--bogus"], 2, "err", "python -m sb3_pearl.train"),
     ],
 )
 def test_python_dash_m_entry_points(
@@ -134,7 +135,9 @@ if os.environ.get("MUJOCO_GL"):
         ),
         (["--env", ENV_ID, "-params", "prior_coef:abc"], "-params prior_coef:abc: the value 'abc' is not a Python expression"),
         (["--env", ENV_ID, "-params", "prior_coef"], "-params prior_coef: expected key:value"),
-        (["--env", ENV_ID, "-params", "warp_factor:9"], "PEARLPlus does not take the hyperparameter(s) ['warp_factor']"),
+        (["--env", ENV_ID, "-params", "warp_factor:9"], "PEARLPlus does not take the hyperparameter(s) 'warp_factor' given"),
+        (["--env", ENV_ID, "-params", "latnt_dim:5"], "'latnt_dim' (did you mean latent_dim?) given in -params (latnt_dim)"),
+        (["--env", ENV_ID, "-n", "1.5"], "-n takes a whole number of env steps, got '1.5'"),
         (
             ["--env", "PointGoalMeta-v0", "--budget", "cpu"],
             "--budget cpu: the cpu preset has no pearlplus entry for PointGoalMeta-v0",
@@ -150,6 +153,15 @@ def test_train_user_errors_are_one_line(
     assert exit_info.value.code == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("train.py: error: ") and message in lines[0], lines
+    assert "hyperparameter" not in message or len(lines[0]) < 200, lines[0]  # a key typo: no list of every accepted key
+
+
+def test_n_timesteps_takes_the_yaml_notation() -> None:
+    """``-n 2e3`` as the YAML files write ``2e6``; rl_zoo3's int parser gets ``2000``."""
+    from sb3_pearl.zoo.usage import check_n_timesteps
+
+    assert check_n_timesteps(["--algo", "pearl", "-n", "2e3"]) == ["--algo", "pearl", "-n", "2000"]
+    assert check_n_timesteps(["--n-timesteps=2_000"]) == ["--n-timesteps=2000"]
 
 
 def test_enjoy_user_error_is_one_line(

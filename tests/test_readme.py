@@ -1,14 +1,37 @@
-"""The README's Python examples run as written."""
+"""The documented commands run as written (issue 37): the README's Python examples, every command of the README,
+docs/README.md and docs/cli.md at a smoke budget, and ``make demo`` with its own defaults.
+
+**The convention for command blocks** (```` ```bash ```` blocks of the pages in :data:`COMMAND_PAGES`): every command
+runs in the fast suite, in the page's order in one temporary folder per page (so an ``enjoy.py`` line replays the
+``train.py`` line above it), shrunk to a smoke budget by :func:`smoke_argv`. A block that cannot run in CI (days of
+training, a Ray cluster, a display, files it would overwrite) is preceded by the HTML comment
+``<!-- commands: parse-only (the reason) -->``: its commands are only parsed against their command line (train.py's
+full parser, rl_zoo3's included; enjoy.py's; the reproduction harness's, ...). ``make X`` lines must name a Makefile
+target; ``make demo`` runs in :func:`test_make_demo_defaults_are_runnable` and :func:`test_demo_at_a_small_size`.
+"""
 
 from __future__ import annotations
 
 import os
 import re
+import shlex
+import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any, NamedTuple
+from unittest import mock
 
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+from sb3_pearl import demo
+from tests.conftest import TINY_ZOO_PARAMS
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+COMMAND_PAGES = ("README.md", "docs/README.md", "docs/cli.md")
+PARSE_ONLY = re.compile(r"<!--\s*commands:\s*parse-only\b")
+SMOKE_STEPS = "300"
+SMOKE_PARAMS = [*TINY_ZOO_PARAMS[:-1], "meta_test:dict(n_adapt=1, n_tasks=2)"]
 
 
 @pytest.mark.parametrize("shrink", [True, pytest.param(False, marks=pytest.mark.slow)])
@@ -29,3 +52,229 @@ def test_readme_python_examples_run(shrink: bool, tmp_path: Path, capsys: pytest
     assert (tmp_path / "pearlplus_safepoint.zip").exists()
     printed = capsys.readouterr().out
     assert [line.split()[0] for line in printed.splitlines() if line.startswith("k=")] == ["k=0", "k=1", "k=2"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Every documented command
+# ----------------------------------------------------------------------------------------------
+class Command(NamedTuple):
+    """One documented command line: where it is, its tool, its arguments, and whether it may run in the tests."""
+
+    page: str
+    line: int
+    tool: str
+    argv: list[str]
+    run: bool
+
+
+TOOLS = {
+    "python train.py": "train",
+    "python -m sb3_pearl.train": "train",
+    "sb3-pearl-train": "train",
+    "python enjoy.py": "enjoy",
+    "python -m sb3_pearl.enjoy": "enjoy",
+    "sb3-pearl-enjoy": "enjoy",
+    "python -m sb3_pearl.plots": "plots",
+    "python -m sb3_pearl.reproduce": "reproduce",
+    "python -m sb3_pearl.diagnose": "diagnose",
+    "python -m sb3_pearl.demo": "demo",
+    "make": "make",
+}
+
+
+def page_commands(page: str) -> Iterator[Command]:
+    """The commands of a page's bash blocks, with their parse-only marks (module docstring)."""
+    lines = (ROOT / page).read_text().splitlines()
+    index = 0
+    while index < len(lines):
+        if lines[index].strip() != "```bash":
+            index += 1
+            continue
+        previous = next((line for line in reversed(lines[:index]) if line.strip()), "")
+        run = not PARSE_ONLY.search(previous)
+        index += 1
+        while index < len(lines) and lines[index].strip() != "```":
+            words = shlex.split(lines[index], comments=True)
+            if words:
+                text = " ".join(words)
+                prefix = next((p for p in sorted(TOOLS, key=len, reverse=True) if text == p or text.startswith(p + " ")), None)
+                assert prefix is not None, f"{page}:{index + 1}: no handler for {text!r} in tests/test_readme.py"
+                yield Command(page, index + 1, TOOLS[prefix], words[len(prefix.split()) :], run)
+            index += 1
+        index += 1
+
+
+def _set(argv: list[str], flag: str, value: str) -> list[str]:
+    """``argv`` with ``flag value`` (replacing the flag's value where it is given)."""
+    if flag in argv:
+        argv = list(argv)
+        argv[argv.index(flag) + 1] = value
+        return argv
+    return [*argv, flag, value]
+
+
+def smoke_argv(command: Command, workdir: Path) -> list[str]:
+    """
+    The command at a smoke budget: train.py with 300 env steps, the tests' tiny networks and a two-task meta-test
+    (the command's own ``-params`` win); enjoy.py on one task and one posterior trajectory, ``--run`` folders read
+    from the checkout's ``results/`` and never written to.
+    """
+    argv = list(command.argv)
+    if command.tool == "train":
+        params: list[str] = []
+        if "-params" in argv:
+            start = argv.index("-params") + 1
+            end = next((i for i in range(start, len(argv)) if argv[i].startswith("-") and ":" not in argv[i]), len(argv))
+            params, argv = argv[start:end], argv[: start - 1] + argv[end:]
+        evaluates = "--eval-freq" in argv and argv[argv.index("--eval-freq") + 1] != "-1"
+        argv = _set(_set(argv, "-n", SMOKE_STEPS), "--num-threads", "1")
+        argv = _set(argv, "--eval-freq", "200" if evaluates else "-1")  # an evaluating command keeps best_model.zip
+        return [*argv, "-params", *SMOKE_PARAMS, *params]
+    if command.tool == "enjoy":
+        argv = _set(_set(_set(argv, "--n-tasks", "1"), "--n-adapt", "1"), "--num-threads", "1")
+        if "--run" in argv:
+            run = argv[argv.index("--run") + 1]
+            argv = _set(argv, "--run", str(ROOT / run))
+            if "--plot" in argv:  # its default is the run folder: not under results/
+                argv.insert(argv.index("--plot") + 1, str(workdir / "enjoy.png"))
+        return argv
+    return argv
+
+
+class _Parsed(Exception):
+    """Raised in place of building the experiment: train.py's command line was fully parsed."""
+
+
+def parse_train(argv: list[str]) -> None:
+    """Parse a train.py command line with train.py's own parser (rl_zoo3's, the project's flags and checks)."""
+    from sb3_pearl.zoo import experiment_manager
+
+    def stop(*args: Any, **kwargs: Any) -> None:
+        raise _Parsed
+
+    with mock.patch.object(experiment_manager, "MetaExperimentManager", stop), pytest.raises(_Parsed):
+        experiment_manager.train(argv)
+
+
+def parse(command: Command) -> None:
+    """Parse a command against its command line without running it."""
+    where = f"{command.page}:{command.line}"
+    if command.tool == "train":
+        parse_train(command.argv)
+    elif command.tool == "enjoy":
+        from sb3_pearl.zoo import enjoy_parser
+
+        enjoy_parser().parse_args(command.argv)
+    elif command.tool == "reproduce":
+        from sb3_pearl.reproduce.cli import build_parser
+
+        build_parser().parse_args(command.argv)
+    elif command.tool == "diagnose":
+        from sb3_pearl.diagnose import parser
+
+        parser().parse_args(command.argv)
+    elif command.tool == "demo":
+        demo.demo_parser().parse_args(command.argv)
+    elif command.tool == "plots":
+        assert command.argv and not command.argv[0].startswith("-"), where
+    elif command.tool == "make":
+        targets = re.findall(r"^([\w-]+):", (ROOT / "Makefile").read_text(), flags=re.M)
+        assert command.argv and set(command.argv) <= set(targets), f"{where}: no Makefile target {command.argv}"
+
+
+def run(command: Command, workdir: Path) -> None:
+    """Run a command at its smoke budget in ``workdir``."""
+    argv = smoke_argv(command, workdir)
+    if command.tool == "train":
+        from sb3_pearl.zoo import train
+
+        train(argv)
+    elif command.tool == "enjoy":
+        from sb3_pearl.zoo import enjoy
+
+        enjoy(argv)
+    elif command.tool == "plots":
+        from sb3_pearl.plots import main as plots_main
+
+        plots_main(argv)
+    else:  # the harness, diagnostics, make and the demo: parsed here, run by their own tests
+        parse(command)
+
+
+@pytest.mark.parametrize("page", COMMAND_PAGES)
+def test_documented_commands_run(
+    page: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    commands = list(page_commands(page))
+    assert commands, f"{page} lost its commands"
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    for command in commands:
+        parse(command)  # every command, also those that run: the documented line itself parses
+        if command.run:
+            run(command, tmp_path)
+
+
+def test_the_readme_runs_its_quick_start_and_every_pretrained_model() -> None:
+    """The README's enjoy.py line follows its train.py line, and every model of the pretrained table has a line."""
+    commands = [command for command in page_commands("README.md") if command.run and command.tool != "make"]
+    tools = [command.tool for command in commands]
+    assert tools[:2] == ["train", "enjoy"] and commands[0].argv[:4] == commands[1].argv[:4]  # --algo X --env
+    runs = {command.argv[command.argv.index("--run") + 1] for command in commands if "--run" in command.argv}
+    table = re.findall(r"^\| `([\w./-]+)`(?:, `([\w./-]+)`)? \|", README.read_text(), flags=re.M)
+    named = {name for row in table for name in row if name}
+    for name in named:
+        assert any(run.startswith(f"results/{name}/seed") for run in runs), f"no enjoy.py --run line for {name}"
+    for run in runs:
+        assert (ROOT / run / "model.zip").is_file() and (ROOT / run / "result.json").is_file(), run
+
+
+# ----------------------------------------------------------------------------------------------
+# make demo
+# ----------------------------------------------------------------------------------------------
+def test_make_demo_defaults_are_runnable() -> None:
+    """``make demo`` is ``python -m sb3_pearl.demo`` with no argument, and its defaults fit: the seeds it replays are
+    committed (model and result), its tasks and draws are within their committed meta-test, its train.py line parses."""
+    assert re.search(r"^demo: setup\n\t\$\(BIN\)/python -m sb3_pearl\.demo\n", (ROOT / "Makefile").read_text(), flags=re.M)
+    args = demo.demo_parser().parse_args([])
+    runs = demo.headline_runs(demo.default_results_dir())
+    assert set(runs) == set(demo.HEADLINE) and args.replay_seeds
+    for label, seeds in runs.items():
+        assert set(args.replay_seeds) <= set(seeds), f"{label}: seeds {args.replay_seeds} not all committed"
+        for seed in args.replay_seeds:
+            assert (seeds[seed] / "model.zip").is_file()
+            committed, _ = demo.committed_meta_test(seeds[seed])
+            assert len(committed.tasks) >= args.n_tasks and committed.config["n_repeats"] >= args.n_repeats
+    parse_train(demo.training_argv(args))
+
+
+def test_demo_at_a_small_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """The whole demo with its defaults but the size: one seed of each headline model on two tasks, 300 env steps."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    logs = tmp_path / "logs"
+    summary = demo.main(["--replay-seeds", "0", "--n-tasks", "2", "--n-repeats", "1", "-n", SMOKE_STEPS, "-f", str(logs)])
+    out = capsys.readouterr().out
+    same, total = summary["matching"]
+    assert total == len(demo.HEADLINE) * 2 * 1 * 6 and same == total  # 2 tasks x 1 draw x k = 0..5, as committed
+    assert f"{same} of {total} replayed trajectories identical to their committed result.json rows" in out
+    assert "PEARL+ - PEARL" in out and "k = 0 (prior)" in out and "Violation rate, % [95% interval]" in out
+    assert [Path(path).name for path in summary["figures"]] == ["headline.png", "headline_violations.png"]
+    assert all(Path(path).is_file() for path in summary["figures"])
+    assert (logs / "pearlplus" / f"{demo.TRAIN_ENV_ID}_1" / "meta_test.json").is_file()
+    # the headline table holds the committed numbers of docs/results.md's generated Table I (k = 0, pooled Wilson)
+    headline = summary["headline"]
+    pooled = {label: demo.pool(list(seeds.values())).summary_at(0) for label, seeds in headline.items()}
+    for label, entry in pooled.items():
+        assert f"{100 * entry['violation_rate']:.1f} [" in out, label
+
+
+@pytest.mark.slow
+def test_make_demo_as_is(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``python -m sb3_pearl.demo`` exactly as ``make demo`` runs it: within the issue's 5 minutes on 2 cores."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    start = time.time()
+    summary = demo.main([])
+    assert summary["matching"][0] == summary["matching"][1] > 0 and "training" in summary
+    assert time.time() - start < 300

@@ -27,6 +27,7 @@ from stable_baselines3.common.callbacks import ProgressBarCallback
 from sb3_pearl.common.type_aliases import TrainingPlan
 
 DAY_S = 86_400.0
+COLLECTION_LINE_S = 5.0  # without -P: a progress line every 5 s of the collection before the first gradient step
 NON_TERMINAL_WIDTH = 140
 
 
@@ -170,7 +171,7 @@ class TrainingProgressCallback(ProgressBarCallback):
         self.n_rollouts = 0
         self.pending_updates = 0  # gradient steps of the running train() call (``_n_updates`` counts them at its end)
         now = time.monotonic()
-        self.t_start = self.phase_start = self.last_draw = now
+        self.t_start = self.phase_start = self.last_draw = self.last_line = now
         self.collecting = self.ended = False
         if hasattr(self.model, "gradient_step_callback"):
             self.model.gradient_step_callback = self._on_gradient_step
@@ -200,7 +201,24 @@ class TrainingProgressCallback(ProgressBarCallback):
 
     def _on_step(self) -> bool:
         self._draw()
+        if self.bar is None and self.verbose >= 1 and self.collecting:
+            self._collection_line()
         return True
+
+    def _collection_line(self) -> None:
+        """Without the bar: a line every ``COLLECTION_LINE_S`` seconds of collection before the first gradient step."""
+        now = time.monotonic()
+        if now - self.last_line < COLLECTION_LINE_S or self.updates_done() > 0:
+            return
+        self.last_line = now
+        env = self.env_steps_done()
+        initial = self.plan.initial_steps if self.plan is not None and self.plan.initial_steps > 0 else self.total_env_steps
+        share = f" ({100 * env / initial:.0f}%)" if initial > 0 else ""
+        print(
+            f"Collecting: {env:,}/{initial:,} env steps{share} before the first gradient step, "
+            f"{format_duration(now - self.t_start)} so far",
+            flush=True,
+        )
 
     def _on_gradient_step(self) -> None:
         """Called by PEARL's ``train()`` after every gradient step."""
@@ -334,4 +352,4 @@ class TrainingProgressCallback(ProgressBarCallback):
         )
 
 
-__all__ = ["DAY_S", "ProgressBar", "TrainingPlan", "TrainingProgressCallback", "format_duration"]
+__all__ = ["COLLECTION_LINE_S", "DAY_S", "ProgressBar", "TrainingPlan", "TrainingProgressCallback", "format_duration"]

@@ -258,12 +258,18 @@ def plan_training(model: PEARL, total_timesteps: int) -> TrainingPlan:
     carry = model.partial_iteration == "carry"  # an unfinished last iteration is trained by a later learn()
     updates = [0 if carry and done < planned else math.ceil(steps * done / planned) for done, planned in chunks]
     initial = chunks[0][0] if chunks and open_iteration is None and without_data > 0 else 0
+    note = ""
+    if initial:
+        per_task, planned = model.num_initial_steps, model.num_initial_steps * without_data
+        note = f"iteration 0: {per_task:,} steps with z from the prior per training task, {without_data} tasks"
+        if initial < planned:  # the budget ends inside iteration 0: say how much of it runs
+            note += f"; this run's {initial:,} steps reach {math.ceil(initial / per_task)} of them"
+        else:
+            note += f" ({planned:,} in all)"
     return TrainingPlan(
         env_steps=max(total_timesteps - model.num_timesteps, 0),
         gradient_steps=sum(updates),
         initial_steps=initial,
         first_updates=updates[0] if updates else 0,
-        note=f"iteration 0: {model.num_initial_steps:,} steps with z from the prior on each of {without_data} training tasks"
-        if initial
-        else "",
+        note=note,
     )

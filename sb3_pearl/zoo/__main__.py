@@ -12,6 +12,6 @@ USAGE = """sb3_pearl.zoo is the library behind the command line (docs/cli.md). R
 Add -h to any of them for its flags."""
 
 if __name__ == "__main__":
-    asked = bool({"-h", "--help"} & set(sys.argv[1:]))
-    print(USAGE, file=sys.stdout if asked else sys.stderr)
-    sys.exit(0 if asked else 2)  # argparse's status for a missing command
+    unknown = [arg for arg in sys.argv[1:] if arg not in ("-h", "--help")]
+    print(USAGE, file=sys.stderr if unknown else sys.stdout)
+    sys.exit(2 if unknown else 0)  # the list is what was asked for; an argument it does not take is argparse's status 2

@@ -2,7 +2,7 @@
 
 The presets (``sb3_pearl/config/presets/*.yml``, read by
 :func:`~sb3_pearl.experiments.budgets.load_budget`) are the one source of the reproduction harness's budgets;
-``--budget cpu`` trains with the same entry (a run of <= 45 minutes on one core) instead of the paper-sized
+``--budget cpu`` trains with the same entry (PEARL / PEARL+ runs of 8-42 minutes on one core) instead of the paper-sized
 entry of ``zoo_hyperparams/<algo>.yml``. Env ids map to the presets' family names through
 :data:`sb3_pearl.experiments.families.FAMILIES`.
 """
@@ -110,7 +110,7 @@ def faster_option(env_id: str, algo: str, budget: str | None, prog: str = "train
     return (
         f"Faster: {prog} --algo {algo} --env {env_id} --budget cpu trains with the reproduction harness's cpu preset "
         f"({entry['n_timesteps']:,} env steps, policy_kwargs {entry.get('policy_kwargs', 'default')}; "
-        "one run <= 45 min on one core)."
+        "PEARL / PEARL+ runs of it took 8-42 min on one core)."
     )
 
 

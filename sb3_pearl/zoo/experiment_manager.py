@@ -23,6 +23,7 @@ the seed of the held-out tasks drawn from the eval env and of the common random 
 
 from __future__ import annotations
 
+import difflib
 import functools
 import importlib.util
 import os
@@ -150,9 +151,14 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         if unknown:
             overridden = sorted(set(unknown) & set(self.custom_hyperparams or {}))
             where = f"-params ({', '.join(overridden)})" if overridden else f"{self.config} [{self.env_name.gym_id}]"
+            known = sorted(accepted | ZOO_SPECIAL_KEYS)
+            named = []
+            for key in unknown:
+                match = difflib.get_close_matches(key, known, n=1)
+                named.append(f"{key!r} (did you mean {match[0]}?)" if match else repr(key))
             raise UsageError(
-                f"{algo_class.__name__} does not take the hyperparameter(s) {unknown} given in {where}. "
-                f"Accepted constructor kwargs: {sorted(accepted)}; zoo keys: {sorted(ZOO_SPECIAL_KEYS)}"
+                f"{algo_class.__name__} does not take the hyperparameter(s) {', '.join(named)} given in {where} "
+                f"(the accepted ones: help({algo_class.__name__}) and the zoo keys of docs/cli.md)"
             )
         meta = hyperparams.get("meta_test") or {}
         if isinstance(meta, str):  # the zoo's convention for dict values given as strings, parsed without eval()

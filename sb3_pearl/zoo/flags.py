@@ -15,7 +15,7 @@ from sb3_pearl.zoo.usage import UsageError, check_env_id
 PROJECT_FLAGS_HELP = """
 sb3-pearl flags (docs/cli.md):
   --budget PRESET       train with the env's entry of a budget preset instead of zoo_hyperparams/<algo>.yml:
-                        cpu (one run <= 45 min on one core), smoke (seconds) or paper
+                        cpu (PEARL / PEARL+ runs of 8-42 min on one core), smoke or paper
                         (sb3_pearl/config/presets/; -n and -params still override it)
   --resume CHECKPOINT   continue a --save-freq checkpoint (or a run's model) up to n_timesteps in all, with its
                         replay buffer and RNG states"""
@@ -36,9 +36,8 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
     :param args: the command line (not changed)
     :return: rl_zoo3's arguments and the project's settings
     """
-    args = list(args)
     resume, budget = False, None
-    usage.check_n_timesteps(args)
+    args = usage.check_n_timesteps(args)
     if "--resume" in args:
         index = args.index("--resume")
         if index + 1 >= len(args) or not os.path.isfile(args[index + 1]) or not args[index + 1].endswith(".zip"):

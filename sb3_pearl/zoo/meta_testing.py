@@ -59,6 +59,15 @@ class MetaTestExperimentManager(ExperimentManager):
         # rl_zoo3's learn() closes when training stops.
         self.callbacks = [cb for cb in self.callbacks if not isinstance(cb, ProgressBarCallback)]
         slow_hint = faster_option(self.env_name.gym_id, self.algo, self.budget, program_name())
+        if self.verbose >= 1 and not self.optimize_hyperparameters:
+            settings = self.meta_test_kwargs
+            tasks = settings.get("n_tasks") or "the model's test"
+            print(
+                f"After training, the final meta-test: {tasks} tasks x {settings['n_repeats']} prior draw(s) x "
+                f"{int(settings['n_adapt']) + 1} trajectories (Ctrl-C skips it; -params "
+                '"meta_test:dict(n_tasks=N)" sizes it)',
+                flush=True,
+            )
         self.callbacks.insert(0, TrainingProgressCallback(self.show_progress, slow_hint, verbose=self.verbose))
         # --save-freq: resumable checkpoints (model with its RNG states + replay buffer, at an iteration start).
         self.callbacks = [

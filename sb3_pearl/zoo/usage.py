@@ -97,25 +97,36 @@ class CheckedStoreDict(StoreDict):
 __all__ = ["EXIT_USAGE", "CheckedStoreDict", "UsageError", "UsageExit", "check_env_id", "exit_on_usage_error", "program_name"]
 
 
-def check_n_timesteps(args: list[str]) -> None:
+def check_n_timesteps(args: list[str]) -> list[str]:
     """
-    Refuse ``-n`` / ``--n-timesteps`` of 0 or less at parse time (rl_zoo3 would train the YAML's budget instead).
+    Check ``-n`` / ``--n-timesteps`` at parse time: a positive whole number of env steps, written as the YAML files write
+    it (``2000``, ``2e3``, ``2_000``); refuse 0 or less (rl_zoo3 would train the YAML's budget instead).
 
-    :param args: the command line
+    :param args: the command line (not changed)
+    :return: the command line with the value as rl_zoo3's ``int`` parser takes it (``2e3`` -> ``2000``)
     """
+    args = list(args)
     for index, arg in enumerate(args):
-        name, _, value = arg.partition("=")
+        name, sep, value = arg.partition("=")
         if name not in ("-n", "--n-timesteps"):
             continue
-        value = value or (args[index + 1] if index + 1 < len(args) else "")
+        value = value if sep else (args[index + 1] if index + 1 < len(args) else "")
         try:
-            steps = int(value)
+            number = float(value.replace("_", ""))
         except ValueError:
             raise UsageError(f"{name} takes a number of env steps, got {value!r}") from None
+        if not number.is_integer():
+            raise UsageError(f"{name} takes a whole number of env steps, got {value!r}")
+        steps = int(number)
         if steps <= 0:
             raise UsageError(
                 f"{name} must be a positive number of env steps, got {steps} (omit it for the YAML's n_timesteps)"
             )
+        if sep:
+            args[index] = f"{name}={steps}"
+        else:
+            args[index + 1] = str(steps)
+    return args
 
 
 def check_yaml_n_timesteps(hyperparams: dict[str, Any], where: str) -> None:
