@@ -3,6 +3,7 @@ errors for the unclear cases. Every test here failed before its fix."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -10,6 +11,9 @@ import numpy as np
 import pytest
 
 from sb3_pearl.envs import FAMILIES
+from sb3_pearl.reproduce.cells import load_groups
+from sb3_pearl.reproduce.cli import main
+from sb3_pearl.reproduce.layout import write_json_atomic
 from tests.test_reliability import ENV_ID, tiny_finetune, tiny_maml, tiny_pearl
 
 
@@ -53,3 +57,53 @@ def test_learn_refuses_a_negative_budget(algo: str, tiny_kwargs: dict[str, Any])
     with pytest.raises(ValueError, match=r"learn\(\): total_timesteps must be >= 0 \(env steps to train on\), got -1"):
         model.learn(-1)
     assert model.num_timesteps == 0
+
+
+# ----------------------------------------------------------------------------------------------
+# Reports: each result owns its place (no copy, no result in another run's folder)
+# ----------------------------------------------------------------------------------------------
+def _write_result(results: Path, seed: int, folder_seed: int | None = None, experiment_folder: str = "safe-point") -> Path:
+    path = results / experiment_folder / "safe-point" / "alpha-0" / f"seed{seed if folder_seed is None else folder_seed}"
+    summary = [{"k": 0, "n": 1, "return_mean": -1.0 - seed, "violation_rate": 0.0}]
+    result = {"experiment": "safe-point", "family": "safe-point", "variant": "alpha-0", "seed": seed, "budget_preset": "smoke"}
+    write_json_atomic(path / "result.json", {**result, "meta_test": {"summary": summary}})
+    return path / "result.json"
+
+
+def test_report_refuses_a_copy_of_a_result_naming_both_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    results, page = tmp_path / "results", tmp_path / "results.md"
+    real = _write_result(results, 0)
+    assert set(load_groups(results)[("safe-point", "smoke", "safe-point")]["alpha-0"]) == {0}
+    backup = _write_result(results, 0, experiment_folder="safe-point.bak")  # a backup copy beside the real folder
+    assert main(["report", "--results-dir", str(results), "--out", str(page)]) == 2
+    assert (
+        f"error: {real} and {backup} both hold the result of safe-point smoke safe-point alpha-0 seed0"
+        in capsys.readouterr().err
+    )
+    assert not page.exists()
+
+
+def test_report_and_status_refuse_a_result_in_another_runs_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    results = tmp_path / "results"
+    moved = _write_result(results, 0, folder_seed=1)  # seed1/result.json says seed 0 (beside seed0's: both files named)
+    with pytest.raises(
+        ValueError, match=rf"{moved} holds the result of another run: seed 'seed0' \(its folder says 'seed1'\)"
+    ):
+        load_groups(results)
+    assert main(["status", "safe-point", "--results-dir", str(results), "--seeds", "0-1", "--budget", "smoke"]) == 2
+    assert f"error: {moved} holds the result of another run" in capsys.readouterr().err
+
+
+def test_report_out_on_a_folder_and_status_of_a_missing_folder_are_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    results = tmp_path / "results"
+    _write_result(results, 0)
+    assert main(["report", "--results-dir", str(results), "--out", str(tmp_path)]) == 2
+    assert (
+        capsys.readouterr().err
+        == f"error: --out {tmp_path} is a folder: give the markdown file to write, e.g. {tmp_path / 'results.md'}\n"
+    )
+    assert not (tmp_path / "figures").exists()  # nothing written beside it
+    assert main(["status", "safe-point", "--results-dir", str(tmp_path / "nowhere")]) == 2
+    assert "error: --results-dir" in capsys.readouterr().err

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -29,8 +30,6 @@ RAY_OPTIONS = ("address", "cpus_per_run", "gpus_per_run", "retries", "storage_pa
 
 def check_results_dir(path: str) -> None:
     """Refuse, before any run starts, a results dir that is a file or cannot be written."""
-    import os
-
     folder = os.path.abspath(path)
     existing = folder
     while not os.path.exists(existing):
@@ -230,6 +229,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "status":
             from sb3_pearl.reproduce.status import format_status, run_status
 
+            if not os.path.isdir(args.results_dir):
+                raise ValueError(f"--results-dir {args.results_dir} does not exist or is not a folder: no run to report on")
             experiment = get_experiment(args.experiment)
             seeds = parse_seeds(args.seeds) if args.seeds is not None else list(experiment.seeds)
             budget = args.budget or experiment.budget
