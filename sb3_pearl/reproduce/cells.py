@@ -48,7 +48,7 @@ def load_groups(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str
     :return: (experiment, budget preset, family) -> variant -> seed -> result
     """
     groups: dict[tuple[str, str, str], Group] = defaultdict(lambda: defaultdict(dict))
-    owners: dict[tuple[str, str, str, str, str], Path] = {}
+    owners: dict[tuple[str, ...], Path] = {}
     results = [(path, read_result(path)) for path in find_results(results_dir)]
     for path, result in results:  # duplicates first: their message names both files (a backup copy beside the runs)
         run = tuple(str(result[key]) for key in ("experiment", "budget_preset", "family", "variant", "seed"))
