@@ -3,18 +3,26 @@ errors for the unclear cases. Every test here failed before its fix."""
 
 from __future__ import annotations
 
+import json
+import signal
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
+import yaml
 
+import tests.faulty_envs as faulty_envs
+from sb3_pearl import PEARLPlus
 from sb3_pearl.envs import FAMILIES
 from sb3_pearl.reproduce.cells import load_groups
 from sb3_pearl.reproduce.cli import main
 from sb3_pearl.reproduce.layout import write_json_atomic
-from tests.test_reliability import ENV_ID, tiny_finetune, tiny_maml, tiny_pearl
+from sb3_pearl.zoo import train
+from tests.conftest import Completed, run_in_process
+from tests.test_reliability import ENV_ID, TINY_ZOO, tiny_finetune, tiny_maml, tiny_pearl
 
 
 # ----------------------------------------------------------------------------------------------
@@ -107,3 +115,56 @@ def test_report_out_on_a_folder_and_status_of_a_missing_folder_are_one_line(
     assert not (tmp_path / "figures").exists()  # nothing written beside it
     assert main(["status", "safe-point", "--results-dir", str(tmp_path / "nowhere")]) == 2
     assert "error: --results-dir" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------------
+# SIGTERM and Ctrl-C alike: stopped where the run resumes exactly, buffer saved, run marked cut
+# ----------------------------------------------------------------------------------------------
+SIGNAL_ENV = "SignalSafePointGoalMeta-v0"
+
+
+def _train_signal_env(tmp_path: Path, folder: Path, *extra: str, check: bool = True) -> Completed:
+    conf = tmp_path / "conf.yml"  # iteration 0 = 4 x 30 = 120 steps, then 5 x (30 + 30) = 300
+    conf.write_text(yaml.safe_dump({SIGNAL_ENV: {**TINY_ZOO, "n_timesteps": 420, "meta_test": "dict(n_adapt=0)"}}))
+    command = ["--algo", "pearlplus", "--env", SIGNAL_ENV, "-f", str(folder), "-conf", str(conf), "--seed", "1"]
+    command += ["--num-threads", "1", "--eval-episodes", "1", "--gym-packages", "tests.faulty_envs", *extra]
+    return run_in_process(train, *command, check=check)
+
+
+def _policy_weights(path: Path) -> list[th.Tensor]:
+    return list(PEARLPlus.load(path).policy.state_dict().values())
+
+
+def test_a_signal_cuts_the_run_saves_what_the_resume_needs_and_the_resume_is_exact(tmp_path: Path) -> None:
+    faulty_envs.send_signals({})
+    _train_signal_env(tmp_path, tmp_path / "full")
+    full = _policy_weights(tmp_path / "full" / "pearlplus" / f"{SIGNAL_ENV}_1" / f"{SIGNAL_ENV}.zip")
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        name = signal.Signals(signum).name
+        logs = tmp_path / name
+        run = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
+        faulty_envs.send_signals({200: signum})  # inside iteration 1 (steps 120-420)
+        cut = _train_signal_env(tmp_path, logs, check=False)
+        assert cut.returncode == 128 + signum, cut.stdout[-2000:] + cut.stderr[-2000:]
+        assert f"Received {name}: stopping training where it resumes exactly" in cut.stdout
+        assert f"Stopped by {name} at 200 of 420 timesteps: the run is cut" in cut.stdout
+        record = json.loads((run / "interrupted.json").read_text())
+        assert record["signal"] == name and record["during"] == "training" and record["exact_resume"]
+        assert record["num_timesteps"] == 200 and record["replay_buffer"] == str(run / "replay_buffer.pkl")
+        assert not (run / "meta_test.json").exists()  # skipped for both signals
+        assert (run / "replay_buffer.pkl").is_file()  # without --save-replay-buffer: the resume needs it
+        assert record["resume"].endswith(f"--resume {run / f'{SIGNAL_ENV}.zip'}")
+        resumed = _train_signal_env(tmp_path, logs, "--resume", str(run / f"{SIGNAL_ENV}.zip"))
+        assert "Resuming at 200 timesteps: 220 to go" in resumed.stdout
+        again = _policy_weights(logs / "pearlplus" / f"{SIGNAL_ENV}_2" / f"{SIGNAL_ENV}.zip")
+        assert all(th.equal(a, b) for a, b in zip(full, again, strict=True)), name
+
+
+def test_a_resume_without_its_replay_buffer_is_refused_in_one_line(tmp_path: Path) -> None:
+    model = tmp_path / "model.zip"
+    model.write_bytes(b"")  # the check comes before anything reads it
+    refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "--resume", str(model), check=False)
+    assert refused.returncode == 2
+    assert refused.stderr.strip().count("\n") == 0
+    assert f"--resume {model}: no replay buffer beside it ({tmp_path / 'replay_buffer.pkl'})" in refused.stderr
+    assert "add --resume-without-buffer to go on anyway" in refused.stderr

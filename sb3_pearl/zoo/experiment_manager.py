@@ -7,7 +7,8 @@
   algorithm does not take, the ``meta_test`` key, and ``--resume``'s replay buffer;
 - :mod:`sb3_pearl.zoo.meta_testing`: the meta-test as the evaluation callback, the Optuna score and the final
   meta-test (``meta_test.csv``, ``meta_test.json``, ``adaptation.png`` in the run folder);
-- :mod:`sb3_pearl.zoo.interruptions`: SIGTERM and exceptions save the model, as Ctrl-C does.
+- :mod:`sb3_pearl.zoo.interruptions`: SIGTERM and Ctrl-C stop training where it resumes exactly (the run marked cut),
+  and exceptions save the model.
 
 :func:`train` runs ``rl_zoo3.train.train()`` with it and the project's algorithms (argument parsing, log layout and the
 Optuna loop are rl_zoo3's), after the project's own flags (:mod:`sb3_pearl.zoo.flags`); user errors are one line with
@@ -89,6 +90,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
     :param args: rl_zoo3's arguments (its ``ExperimentManager``'s, as are ``algo``, ``env_id``, ``log_folder`` and the rest)
     :param resume: ``--resume``: continue the checkpoint given as ``-i`` with its counters, up to ``n_timesteps`` in all
     :param budget: ``--budget PRESET``: the family's entry of that budget preset replaces the YAML entry
+    :param command: ``train.py``'s command line (the resume command of a run cut by a signal is made from it)
     """
 
     def __init__(
@@ -100,11 +102,12 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         *posargs: Any,
         resume: bool = False,
         budget: str | None = None,
+        command: Sequence[str] = (),
         **kwargs: Any,
     ) -> None:
         if kwargs.get("config") is None and os.path.isfile(default_config(algo)):
             kwargs["config"] = default_config(algo)  # else rl_zoo3's own file (its algorithms)
-        self.resume, self.budget = resume, budget
+        self.resume, self.budget, self.command = resume, budget, list(command)
         super().__init__(args, algo, env_id, log_folder, *posargs, **kwargs)
         self.meta_test_kwargs = dict(ZOO_META_TEST_DEFAULTS)
         self.adaptive = has_adaptation_api(ALGOS[algo])
@@ -231,7 +234,7 @@ def train(argv: Sequence[str] | None = None) -> None:
     register_algos()
     with exit_on_usage_error():
         flags = parse_project_flags(list(sys.argv[1:] if argv is None else argv))
-        manager = functools.partial(MetaExperimentManager, resume=flags.resume, budget=flags.budget)
+        manager = functools.partial(MetaExperimentManager, resume=flags.resume, budget=flags.budget, command=flags.command)
         with (
             mock.patch.object(sys, "argv", [sys.argv[0], *flags.zoo_args]),
             mock.patch.object(rl_zoo3.train, "ExperimentManager", manager),
