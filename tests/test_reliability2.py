@@ -4,6 +4,8 @@ errors for the unclear cases. Every test here failed before its fix."""
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
 import signal
 from pathlib import Path
 from typing import Any
@@ -21,7 +23,8 @@ from sb3_pearl.reproduce.cells import load_groups
 from sb3_pearl.reproduce.cli import main
 from sb3_pearl.reproduce.layout import write_json_atomic
 from sb3_pearl.zoo import train
-from tests.conftest import Completed, run_in_process
+from sb3_pearl.zoo.safe_config import load_run_yaml
+from tests.conftest import TINY_ZOO_PARAMS, Completed, run_in_process
 from tests.test_reliability import ENV_ID, TINY_ZOO, tiny_finetune, tiny_maml, tiny_pearl
 
 
@@ -168,3 +171,42 @@ def test_a_resume_without_its_replay_buffer_is_refused_in_one_line(tmp_path: Pat
     assert refused.stderr.strip().count("\n") == 0
     assert f"--resume {model}: no replay buffer beside it ({tmp_path / 'replay_buffer.pkl'})" in refused.stderr
     assert "add --resume-without-buffer to go on anyway" in refused.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# Run folders: reserved atomically; a refused set-up leaves none behind
+# ----------------------------------------------------------------------------------------------
+def _train_at_the_barrier(barrier: Any, logs: str, seed: int) -> None:  # a forked child: train.py's entry point
+    barrier.wait(timeout=60)
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", logs, "--seed", str(seed), "-n", "60", "--num-threads", "1"]
+    argv += ["--eval-freq", "-1", "-params", *TINY_ZOO_PARAMS]
+    os._exit(run_in_process(train, *argv, check=False).returncode)
+
+
+def test_runs_started_together_on_one_folder_each_get_their_own(tmp_path: Path) -> None:
+    context = multiprocessing.get_context("fork")
+    seeds = (1, 2, 3)
+    barrier = context.Barrier(len(seeds))
+    children = [context.Process(target=_train_at_the_barrier, args=(barrier, str(tmp_path), seed)) for seed in seeds]
+    for child in children:
+        child.start()
+    for child in children:
+        child.join(timeout=240)
+    assert [child.exitcode for child in children] == [0, 0, 0]
+    runs = sorted((tmp_path / "pearlplus").iterdir())
+    assert [run.name for run in runs] == [f"{ENV_ID}_{n}" for n in (1, 2, 3)]  # before: 2 or 3 runs in one folder
+    found = set()
+    for run in runs:
+        seed = load_run_yaml(run / ENV_ID / "args.yml")["seed"]
+        found.add(seed)
+        assert PEARLPlus.load(run / f"{ENV_ID}.zip").seed == seed
+        monitor = (run / "0.monitor.csv").read_text().splitlines()
+        assert sum(line.startswith("#") for line in monitor) == 1  # one writer
+    assert found == set(seeds)
+
+
+def test_a_refused_hyperparameter_leaves_no_run_folder(tmp_path: Path) -> None:
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path), "--seed", "1", "-params", "latent_dim:-3"]
+    refused = run_in_process(train, *argv, check=False)
+    assert refused.returncode == 2 and "latent_dim" in refused.stderr
+    assert not any((tmp_path / "pearlplus").iterdir())  # before: <EnvId>_1 with its monitor file and config

@@ -27,6 +27,8 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
+import re
+import shutil
 import sys
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -36,6 +38,7 @@ from unittest import mock
 
 import rl_zoo3.train
 from rl_zoo3 import ALGOS
+from rl_zoo3.utils import get_latest_run_id
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -92,6 +95,8 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
     :param budget: ``--budget PRESET``: the family's entry of that budget preset replaces the YAML entry
     :param command: ``train.py``'s command line (the resume command of a run cut by a signal is made from it)
     """
+
+    _reserved_folder: str | None = None  # the run folder this manager created (removed if the set-up fails)
 
     def __init__(
         self,
@@ -178,7 +183,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         rl_zoo3's set-up; a ValueError on the way (a value the env or the algorithm refuses) is a user error. For an
         algorithm with the adaptation API, the held-out tasks of the meta-tests are drawn once here, so that a draw
         that hits training tasks (``--seed`` equal to the eval seed, a family with few distinct tasks) is refused
-        before training, not after it.
+        before training, not after it. A set-up that fails removes the run folder it reserved: nothing is left behind.
         """
         try:
             setup = super().setup_experiment()
@@ -186,9 +191,31 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
                 self._check_held_out_tasks(setup[0])
             return setup
         except UsageError:
+            self._remove_reserved_folder()
             raise
         except ValueError as error:
+            self._remove_reserved_folder()
             raise UsageError(str(error)) from error
+        except BaseException:
+            self._remove_reserved_folder()
+            raise
+
+    def create_log_folder(self) -> None:
+        """
+        Reserve the run folder ``<log folder>/<algo>/<EnvId>_<n>``: created exclusively, the next free number taken on a
+        collision (rl_zoo3 picks ``n`` when the manager is made and creates the folder later with ``exist_ok``, so two
+        runs started together shared one folder: one's model, args.yml and monitor file over the other's).
+        """
+        self.save_path = reserve_run_folder(self.log_path, str(self.env_name), self.save_path)
+        self._reserved_folder = self.save_path
+        self.params_path = f"{self.save_path}/{self.env_name}"
+        os.makedirs(self.params_path, exist_ok=True)
+
+    def _remove_reserved_folder(self) -> None:
+        folder = getattr(self, "_reserved_folder", None)
+        if folder is not None and os.path.isdir(folder):
+            shutil.rmtree(folder, ignore_errors=True)  # created by this process, empty of results
+        self._reserved_folder = None
 
     def _check_held_out_tasks(self, model: BaseAlgorithm) -> None:
         settings = self.meta_test_kwargs
@@ -215,6 +242,28 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         """After the save: the final meta-test of an algorithm with the adaptation API (Ctrl-C / SIGTERM skip it)."""
         if self.adaptive:
             self.final_meta_test(model)
+
+
+def reserve_run_folder(log_path: str, env_name: str, planned: str) -> str:
+    """
+    Create a run folder exclusively: ``planned`` (``<log_path>/<env_name>_<n><suffix>``, rl_zoo3's choice), or the
+    next free number when another process took it first.
+
+    :param log_path: the algorithm's log folder
+    :param env_name: the env id as rl_zoo3 writes it
+    :param planned: the folder rl_zoo3 chose
+    :return: the folder created, which this process owns
+    """
+    match = re.fullmatch(re.escape(env_name) + r"_(\d+)(.*)", os.path.basename(planned))
+    number, suffix = (int(match.group(1)), match.group(2)) if match else (get_latest_run_id(log_path, env_name) + 1, "")
+    os.makedirs(log_path, exist_ok=True)
+    while True:
+        folder = os.path.join(log_path, f"{env_name}_{number}{suffix}")
+        try:
+            os.mkdir(folder)
+            return folder
+        except FileExistsError:
+            number = max(number, get_latest_run_id(log_path, env_name)) + 1
 
 
 def train(argv: Sequence[str] | None = None) -> None:
