@@ -7,6 +7,8 @@ import json
 import multiprocessing
 import os
 import signal
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +24,7 @@ from sb3_pearl.envs import FAMILIES
 from sb3_pearl.reproduce.cells import load_groups
 from sb3_pearl.reproduce.cli import main
 from sb3_pearl.reproduce.layout import write_json_atomic
+from sb3_pearl.reproduce.ownership import RunLockedError, lock_holder, run_lock
 from sb3_pearl.zoo import train
 from sb3_pearl.zoo.safe_config import load_run_yaml
 from tests.conftest import TINY_ZOO_PARAMS, Completed, run_in_process
@@ -210,3 +213,34 @@ def test_a_refused_hyperparameter_leaves_no_run_folder(tmp_path: Path) -> None:
     refused = run_in_process(train, *argv, check=False)
     assert refused.returncode == 2 and "latent_dim" in refused.stderr
     assert not any((tmp_path / "pearlplus").iterdir())  # before: <EnvId>_1 with its monitor file and config
+
+
+# ----------------------------------------------------------------------------------------------
+# The harness's run.lock: removed when the run ends, exclusive while it runs
+# ----------------------------------------------------------------------------------------------
+def test_the_run_lock_is_removed_when_the_run_ends_and_stays_exclusive(tmp_path: Path) -> None:
+    lock = tmp_path / "run.lock"
+    with run_lock(tmp_path):
+        assert lock.read_text() == f"{os.getpid()}\n" and lock_holder(tmp_path) == os.getpid()
+    assert not lock.exists() and lock_holder(tmp_path) is None  # before: left behind by every run
+    with pytest.raises(RuntimeError, match="the run failed"), run_lock(tmp_path):
+        raise RuntimeError("the run failed")
+    assert not lock.exists()
+    holding, release = threading.Event(), threading.Event()
+
+    def waiter() -> None:  # opens the lock file while the first owner holds it, then waits for it
+        with run_lock(tmp_path, wait_s=10):
+            holding.set()
+            release.wait(10)
+
+    thread = threading.Thread(target=waiter)
+    with run_lock(tmp_path):
+        thread.start()
+        time.sleep(0.3)
+    assert holding.wait(10)
+    assert lock_holder(tmp_path) == os.getpid()  # the waiter holds the file at the path, not the one removed
+    with pytest.raises(RunLockedError), run_lock(tmp_path, wait_s=0.0):
+        pass  # so a third process is refused
+    release.set()
+    thread.join(10)
+    assert not lock.exists()
