@@ -7,6 +7,7 @@ import json
 import multiprocessing
 import os
 import signal
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -20,12 +21,14 @@ import yaml
 
 import tests.faulty_envs as faulty_envs
 from sb3_pearl import PEARLPlus
+from sb3_pearl.diagnose import main as diagnose_main
 from sb3_pearl.envs import FAMILIES
+from sb3_pearl.evaluation.figures import main as plots_main
 from sb3_pearl.reproduce.cells import load_groups
 from sb3_pearl.reproduce.cli import main
 from sb3_pearl.reproduce.layout import write_json_atomic
 from sb3_pearl.reproduce.ownership import RunLockedError, lock_holder, run_lock
-from sb3_pearl.zoo import train
+from sb3_pearl.zoo import enjoy, train
 from sb3_pearl.zoo.safe_config import load_run_yaml
 from tests.conftest import TINY_ZOO_PARAMS, Completed, run_in_process
 from tests.test_reliability import ENV_ID, TINY_ZOO, tiny_finetune, tiny_maml, tiny_pearl
@@ -244,3 +247,68 @@ def test_the_run_lock_is_removed_when_the_run_ends_and_stays_exclusive(tmp_path:
     release.set()
     thread.join(10)
     assert not lock.exists()
+
+
+# ----------------------------------------------------------------------------------------------
+# Unclear cases: one line naming what to fix
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--env-kwargs", "hazrd_radius:0.3"], "--env-kwargs / env_kwargs: SafePointGoalMeta-v0 does not take 'hazrd_radius'"),
+        (["--seed", "-5"], "--seed must be an integer in [0, 4294967295] (omit it for a random seed), got '-5'"),
+        (["--seed", str(2**32)], "--seed must be an integer in [0, 4294967295]"),
+        (["-params", "learning_rate:float('nan')"], "learning_rate must be a finite number >= 0"),
+        (["-f", "FILE"], "is a file, not a folder: give a folder for the run folders"),
+        (["-f", "FILE/logs"], "is a file, not a folder"),
+    ],
+)
+def test_train_py_mistakes_are_one_line(tmp_path: Path, extra: list[str], message: str) -> None:
+    (tmp_path / "file").write_text("")
+    extra = [arg.replace("FILE", str(tmp_path / "file")) for arg in extra]
+    logs = tmp_path / "logs"
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(logs), "-n", "60", *extra]
+    refused = run_in_process(train, *argv, check=False)
+    assert refused.returncode == 2, refused.stdout[-2000:] + refused.stderr[-2000:]
+    assert "Traceback" not in refused.stderr
+    assert message in refused.stderr.strip().splitlines()[-1]
+    assert not logs.exists() or not any(logs.rglob("*.csv"))  # no run folder left
+
+
+def test_a_truncated_model_is_named_by_enjoy_and_diagnose(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    run = tmp_path / "logs" / "pearlplus" / f"{ENV_ID}_1"
+    run.mkdir(parents=True)
+    tiny_pearl(tiny_kwargs, seed=0).save(tmp_path / "model.zip")
+    data = (tmp_path / "model.zip").read_bytes()
+    (run / f"{ENV_ID}.zip").write_bytes(data[: len(data) // 2])
+    expected = f"{run / f'{ENV_ID}.zip'} is not a readable zip"  # diagnose said "not a PEARL / PEARL+ model"
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "logs"), "--no-render", "--n-tasks", "1"]
+    refused = run_in_process(enjoy, *argv, check=False)
+    assert refused.returncode == 2 and expected in refused.stderr and "Traceback" not in refused.stderr
+    with pytest.raises(SystemExit) as exit_info:
+        diagnose_main([str(run / f"{ENV_ID}.zip"), "--env-id", ENV_ID])
+    assert exit_info.value.code == 2
+
+
+def test_save_to_a_path_it_cannot_write_names_the_destination(
+    tmp_path: Path, tiny_kwargs: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model = tiny_pearl(tiny_kwargs, seed=0)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(OSError, match=rf"cannot write {tmp_path / 'file' / 'model.zip'}: {tmp_path / 'file'} is a file"):
+        model.save(tmp_path / "file" / "model.zip")
+
+    def refused(*args: Any, **kwargs: Any) -> Any:  # what a folder without write permission gives (tests run as root)
+        raise PermissionError(13, "Permission denied", str(tmp_path / ".model.x1y2.tmp.zip"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refused)
+    with pytest.raises(PermissionError, match=rf"cannot write {tmp_path / 'model.zip'}: Permission denied in {tmp_path}$"):
+        model.save(tmp_path / "model.zip")
+
+
+def test_plots_names_a_truncated_meta_test_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "meta_test.json").write_text('{"config": {"algo": "pearl"}, "summ')
+    with pytest.raises(SystemExit) as exit_info:
+        plots_main([str(tmp_path), "-o", str(tmp_path / "out.png")])
+    assert exit_info.value.code == 2
+    assert f"{tmp_path / 'meta_test.json'} is not valid JSON" in capsys.readouterr().err

@@ -25,7 +25,9 @@ the seed of the held-out tasks drawn from the eval env and of the common random 
 from __future__ import annotations
 
 import functools
+import importlib
 import importlib.util
+import inspect
 import os
 import re
 import shutil
@@ -36,6 +38,7 @@ from pprint import pprint
 from typing import Any
 from unittest import mock
 
+import gymnasium as gym
 import rl_zoo3.train
 from rl_zoo3 import ALGOS
 from rl_zoo3.utils import get_latest_run_id
@@ -43,6 +46,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import has_adaptation_api
+from sb3_pearl.common.checks import check_learning_rate
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.held_out import model_test_tasks, write_meta_test
@@ -162,6 +166,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
                 f"{algo_class.__name__} does not take the hyperparameter(s) {unknown} given in {where}. "
                 f"Accepted constructor kwargs: {sorted(accepted)}; zoo keys: {sorted(ZOO_SPECIAL_KEYS)}"
             )
+        self._check_learning_rate(hyperparams.get("learning_rate"))
         meta = hyperparams.get("meta_test") or {}
         if isinstance(meta, str):  # the zoo's convention for dict values given as strings, parsed without eval()
             meta = parse_dict_string(meta, "meta_test")
@@ -170,6 +175,26 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         eval_seed = meta.get("eval_seed", 0)
         if isinstance(eval_seed, bool) or not isinstance(eval_seed, int) or eval_seed < 0:
             raise UsageError(f"meta_test eval_seed must be an integer >= 0 (the seed of the test tasks), got {eval_seed!r}")
+
+    def _check_learning_rate(self, learning_rate: Any) -> None:
+        """
+        The constructors' learning-rate check, made here: rl_zoo3 wraps a number (and ``lin_<x>``) into a schedule,
+        which the constructors take without looking inside (a nan reached torch).
+
+        :param learning_rate: the entry's value (a number, ``"lin_<x>"``, or None)
+        """
+        where = "-params" if "learning_rate" in (self.custom_hyperparams or {}) else f"{self.config} [{self.env_name.gym_id}]"
+        value = learning_rate
+        if isinstance(learning_rate, str) and "_" in learning_rate:
+            try:
+                value = float(learning_rate.split("_", 1)[1])
+            except ValueError:
+                raise UsageError(f"learning_rate in {where}: {learning_rate!r} is not a number or lin_<number>") from None
+        if value is not None and not callable(value):
+            try:
+                check_learning_rate("learning_rate", value)
+            except ValueError as error:
+                raise UsageError(f"{error} (in {where})") from None
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
         meta = hyperparams.pop("meta_test", None) or {}
@@ -196,6 +221,11 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         except ValueError as error:
             self._remove_reserved_folder()
             raise UsageError(str(error)) from error
+        except TypeError as error:
+            self._remove_reserved_folder()
+            if "unexpected keyword argument" in str(error) and (self.env_kwargs or self.eval_env_kwargs):
+                raise UsageError(env_kwargs_error(self.env_name.gym_id, error)) from None
+            raise
         except BaseException:
             self._remove_reserved_folder()
             raise
@@ -242,6 +272,27 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         """After the save: the final meta-test of an algorithm with the adaptation API (Ctrl-C / SIGTERM skip it)."""
         if self.adaptive:
             self.final_meta_test(model)
+
+
+def env_kwargs_error(env_id: str, error: TypeError) -> str:
+    """
+    The one-line message for an ``--env-kwargs`` (or YAML ``env_kwargs``) key the env's constructor does not take.
+
+    :param env_id: the env id
+    :param error: the constructor's ``TypeError``
+    :return: the message, with the constructor's parameters
+    """
+    match = re.search(r"unexpected keyword argument '([^']+)'", str(error))
+    key = match.group(1) if match else str(error)
+    spec = gym.spec(env_id)
+    accepted = ""
+    if isinstance(spec.entry_point, str):
+        module, _, name = spec.entry_point.partition(":")
+        parameters = inspect.signature(getattr(importlib.import_module(module), name)).parameters
+        accepted = (
+            " (its parameters: " + ", ".join(p for p, v in parameters.items() if v.kind == v.POSITIONAL_OR_KEYWORD) + ")"
+        )
+    return f"--env-kwargs / env_kwargs: {env_id} does not take {key!r}{accepted}"
 
 
 def reserve_run_folder(log_path: str, env_name: str, planned: str) -> str:

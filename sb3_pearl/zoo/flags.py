@@ -44,6 +44,8 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
     command, args = list(args), list(args)
     resume, budget = False, None
     usage.check_n_timesteps(args)
+    usage.check_seed(args)
+    usage.check_log_folder(args)
     without_buffer = "--resume-without-buffer" in args
     if without_buffer:
         args.remove("--resume-without-buffer")
