@@ -28,10 +28,10 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from stable_baselines3.common.save_util import load_from_zip_file
 
 import sb3_pearl  # noqa: F401  (registers the envs)
 from sb3_pearl.common.checks import non_negative_int, positive_int
+from sb3_pearl.common.persistence import read_model_data
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.pearl import PEARL, PEARLPlus
 from sb3_pearl.pearl.diagnostics import (
@@ -142,8 +142,11 @@ def load_model(model_path: str | Path, env: gym.Env, device: str = "auto") -> PE
     :param device: torch device
     :return: the model
     """
-    data, _, _ = load_from_zip_file(model_path, device="cpu", load_data=True)
-    if data is None or "prior_critic_mode" not in data or "prior_coef" not in data:
+    try:
+        data = read_model_data(model_path)  # a truncated or corrupt zip: an error that says so
+    except ValueError as error:
+        raise RunFolderError(str(error)) from None
+    if "prior_critic_mode" not in data or "prior_coef" not in data:
         raise RunFolderError(f"{model_path} is not a PEARL / PEARL+ model: the diagnostics need one")
     cls = PEARL if data["prior_critic_mode"] == "none" else PEARLPlus
     return cls.load(model_path, env=env, device=device)

@@ -2,11 +2,14 @@
 
 - ``FailingSafePointGoalMeta-v0``: the SafePoint family whose ``step`` raises after ``fail_after`` steps;
 - ``NonFiniteSafePointGoalMeta-v0``: the SafePoint family whose reward (or observation) turns nan / inf
-  after ``fail_after`` steps.
+  after ``fail_after`` steps;
+- ``NoisyResetSafePointGoalMeta-v0``: a start drawn from the env's RNG (exact resume must restore it);
+- ``SignalSafePointGoalMeta-v0``: NoisyReset that sends a signal to its own process at a chosen step.
 """
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -68,3 +71,32 @@ class NoisyResetSafePointGoalEnv(SafePointGoalMetaEnv):
 
 if "NoisyResetSafePointGoalMeta-v0" not in gym.registry:
     gym.register("NoisyResetSafePointGoalMeta-v0", entry_point=NoisyResetSafePointGoalEnv, max_episode_steps=30)
+
+
+SIGNALS: dict[int, int] = {}  # env steps taken in this process -> the signal the step sends to the process itself
+_steps_taken = [0]
+
+
+class SignalSafePointGoalEnv(NoisyResetSafePointGoalEnv):
+    """
+    NoisyReset SafePoint whose step number ``n`` (counted over the process) sends ``SIGNALS[n]`` to the process itself:
+    a SIGTERM / Ctrl-C at a chosen step, for the interruption tests (``tests/test_reliability2.py``).
+    """
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        result = super().step(action)
+        _steps_taken[0] += 1
+        if _steps_taken[0] in SIGNALS:
+            os.kill(os.getpid(), SIGNALS.pop(_steps_taken[0]))
+        return result
+
+
+def send_signals(plan: dict[int, int]) -> None:
+    """Send ``plan[n]`` at the ``n``-th env step from now (counted over every ``SignalSafePointGoalMeta-v0`` env)."""
+    SIGNALS.clear()
+    SIGNALS.update(plan)
+    _steps_taken[0] = 0
+
+
+if "SignalSafePointGoalMeta-v0" not in gym.registry:
+    gym.register("SignalSafePointGoalMeta-v0", entry_point=SignalSafePointGoalEnv, max_episode_steps=30)

@@ -412,8 +412,8 @@ def test_sigterm_saves_the_model_and_says_where(tmp_path: Path) -> None:
     text = "".join(output) + rest
     model_path = tmp_path / "logs" / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip"
     assert proc.returncode == 128 + signal.SIGTERM, text[-3000:]
-    assert "Received SIGTERM: stopping training and saving the model" in text
-    assert f"the model is saved to {model_path}" in text
+    assert "Received SIGTERM: stopping training where it resumes exactly" in text
+    assert f"the model is saved to {model_path} with its replay buffer" in text
     assert PEARLPlus.load(model_path).num_timesteps > 0
 
 

@@ -4,7 +4,8 @@ The meta-test protocol (:func:`sb3_pearl.evaluation.meta_test.meta_test`) talks 
 these four methods (``docs/design.md``): per test task it calls :meth:`~AdaptiveModel.reset_adaptation`,
 then for each trajectory k = 0..K it calls :meth:`~AdaptiveModel.adapt` (for k >= 1 only), rolls the
 trajectory out with :meth:`~AdaptiveModel.predict` and hands every transition to
-:meth:`~AdaptiveModel.observe`.
+:meth:`~AdaptiveModel.observe`. Non-finite values are refused where they enter: ``observe`` (every value),
+``predict`` (the observation: :func:`check_finite_observation`).
 """
 
 from __future__ import annotations
@@ -114,6 +115,23 @@ def check_finite_transition(obs: Any, reward: Any, next_obs: Any) -> None:
             )
 
 
+def check_finite_observation(model: object, observation: Any) -> None:
+    """
+    Raise a clear error if an observation handed to ``predict()`` holds a nan or an inf (the action would too).
+
+    :param model: the model (for the message)
+    :param observation: the observation (an array, or a dict of arrays)
+    """
+    values = observation.values() if isinstance(observation, dict) else (observation,)
+    for value in values:
+        array = np.asarray(value)
+        if array.dtype.kind in "fc" and not np.isfinite(array).all():
+            raise ValueError(
+                f"{type(model).__name__}.predict(): the observation holds a non-finite value ({array.tolist()}): refused, "
+                "the action would be non-finite too; the env diverged or the observation is corrupt"
+            )
+
+
 def _missing_methods(obj: Any) -> list[str]:
     return [name for name in ADAPTATION_METHODS if not callable(getattr(obj, name, None))]
 
@@ -146,6 +164,7 @@ __all__ = [
     "ADAPTATION_METHODS",
     "AdaptiveModel",
     "check_adaptive",
+    "check_finite_observation",
     "check_finite_transition",
     "has_adaptation_api",
     "stored_action",

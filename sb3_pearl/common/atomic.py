@@ -75,10 +75,15 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
     if destination.is_dir():
         raise IsADirectoryError(f"cannot write {destination}: it is a folder")
     folder = destination.parent
-    folder.mkdir(parents=True, exist_ok=True)
-    # ".model.<random>.tmp.zip": hidden, marked as temporary, and keeping the extension that writers
-    # such as matplotlib read the format from.
-    fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{destination.stem}.", suffix=f"{TMP_SUFFIX}{destination.suffix}")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        # ".model.<random>.tmp.zip": hidden, marked as temporary, and keeping the extension that writers
+        # such as matplotlib read the format from.
+        fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{destination.stem}.", suffix=f"{TMP_SUFFIX}{destination.suffix}")
+    except (FileExistsError, NotADirectoryError) as error:  # a file where a folder of the path should be
+        raise type(error)(error.errno, f"cannot write {destination}: {error.filename} is a file, not a folder") from None
+    except OSError as error:  # e.g. a folder without write permission: name the destination, not the temporary file
+        raise type(error)(error.errno, f"cannot write {destination}: {error.strerror} in {folder}") from None
     os.close(fd)
     tmp = pathlib.Path(tmp_name)
     try:

@@ -7,6 +7,7 @@ typo in a YAML entry fails at once instead of training a silently wrong model.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -141,7 +142,26 @@ __all__ = [
     "check_tau",
     "is_integer",
     "is_real",
+    "output_folder_problem",
 ]
+
+
+def output_folder_problem(path: str) -> str | None:
+    """
+    Why ``path`` cannot be an output folder (it or the nearest existing folder above it is a file, or not writable),
+    or None when it can: the check of a results or log folder before any run starts.
+
+    :param path: the folder (it need not exist)
+    :return: the problem, or None
+    """
+    existing = os.path.abspath(path or ".")
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        return f"{existing} is a file, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"{existing} is not writable"
+    return None
 
 
 def positive_int(text: str) -> int:

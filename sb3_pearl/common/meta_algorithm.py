@@ -26,13 +26,14 @@ from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.type_aliases import MaybeCallback
 
-from sb3_pearl.common.adaptation import check_finite_transition
+from sb3_pearl.common.adaptation import check_finite_observation, check_finite_transition
 from sb3_pearl.common.checks import check_task_counts
 from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
 
 if TYPE_CHECKING:
     from stable_baselines3.common.base_class import BaseAlgorithm
+    from stable_baselines3.common.policies import BasePolicy
 
     from sb3_pearl.common.type_aliases import TrainingPlan
 
@@ -166,8 +167,36 @@ class MetaAlgorithm(_AlgorithmBase):
         tb_log_name: str = "run",
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
+        if total_timesteps < 0:
+            raise ValueError(
+                f"{type(self).__name__}.learn(): total_timesteps must be >= 0 (env steps to train on), got {total_timesteps}"
+            )
         self._check_train_tasks()
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """
+        SB3's ``predict``; an observation holding a nan or an inf is refused (its action would be non-finite too).
+
+        :param observation: the input observation
+        :param state: the recurrent state (None for feed-forward policies)
+        :param episode_start: episode-start flags of recurrent policies
+        :param deterministic: return deterministic actions
+        :return: the actions and the next state
+        """
+        check_finite_observation(self, observation)
+        return self.adapted_policy.predict(observation, state, episode_start, deterministic)
+
+    @property
+    def adapted_policy(self) -> BasePolicy:
+        """The policy :meth:`predict` acts with (SB3's ``self.policy``; Fine-Tune's fine-tuned copy once adapted)."""
+        return self.policy
 
     def training_plan(self, total_timesteps: int) -> TrainingPlan | None:
         """

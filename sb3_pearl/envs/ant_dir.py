@@ -37,7 +37,7 @@ from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.utils import EzPickle
 
 from sb3_pearl.envs.locomotion import LocomotionTaskEnv, validate_locomotion_kwargs
-from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.envs.task_protocol import Task, refuse_non_finite_action
 
 
 class AntDirMetaEnv(LocomotionTaskEnv, AntEnv):
@@ -108,6 +108,7 @@ class AntDirMetaEnv(LocomotionTaskEnv, AntEnv):
         :param action: torques, in [-1, 1]^8
         :return: observation, reward, terminated, truncated, info
         """
+        refuse_non_finite_action(self, action)
         obs, _, terminated, truncated, info = super().step(action)
         ux, uy = self._unit_direction
         direction_reward = info["x_velocity"] * ux + info["y_velocity"] * uy

@@ -33,7 +33,7 @@ from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.utils import EzPickle
 
 from sb3_pearl.envs.locomotion import LocomotionTaskEnv, check_range, validate_locomotion_kwargs
-from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.envs.task_protocol import Task, refuse_non_finite_action
 
 
 class AntGoalMetaEnv(LocomotionTaskEnv, AntEnv):
@@ -102,6 +102,7 @@ class AntGoalMetaEnv(LocomotionTaskEnv, AntEnv):
         :param action: torques, in [-1, 1]^8
         :return: observation, reward, terminated, truncated, info
         """
+        refuse_non_finite_action(self, action)
         obs, _, terminated, truncated, info = super().step(action)
         goal_x, goal_y = self._goal
         goal_reward = -(abs(info["x_position"] - goal_x) + abs(info["y_position"] - goal_y))

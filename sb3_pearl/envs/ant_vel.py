@@ -30,7 +30,7 @@ from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.utils import EzPickle
 
 from sb3_pearl.envs.locomotion import LocomotionTaskEnv, check_range, validate_locomotion_kwargs
-from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.envs.task_protocol import Task, refuse_non_finite_action
 
 
 class AntVelMetaEnv(LocomotionTaskEnv, AntEnv):
@@ -95,6 +95,7 @@ class AntVelMetaEnv(LocomotionTaskEnv, AntEnv):
         :param action: torques, in [-1, 1]^8
         :return: observation, reward, terminated, truncated, info
         """
+        refuse_non_finite_action(self, action)
         obs, _, terminated, truncated, info = super().step(action)
         target_x, target_y = self._target_velocity
         velocity_reward = -math.hypot(info["x_velocity"] - target_x, info["y_velocity"] - target_y)

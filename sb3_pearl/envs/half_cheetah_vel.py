@@ -20,7 +20,7 @@ from gymnasium.envs.mujoco.half_cheetah_v5 import HalfCheetahEnv
 from gymnasium.utils import EzPickle
 
 from sb3_pearl.envs.locomotion import check_range, ignore_mujoco_warning
-from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task
+from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, refuse_non_finite_action
 
 
 class HalfCheetahVelMetaEnv(MetaTaskEnv, HalfCheetahEnv):
@@ -64,6 +64,16 @@ class HalfCheetahVelMetaEnv(MetaTaskEnv, HalfCheetahEnv):
         obs, info = super().reset(seed=seed, options=options)
         info["cost"] = 0.0
         return obs, info
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:  # type: ignore[override]
+        """
+        Step the cheetah (Gymnasium's step, whose reward is :meth:`_get_rew`'s); a non-finite action is refused.
+
+        :param action: torques, in [-1, 1]^6
+        :return: observation, reward, terminated (always False), truncated, info
+        """
+        refuse_non_finite_action(self, action)
+        return super().step(action)
 
     def _get_rew(self, x_velocity: float, action: np.ndarray) -> tuple[float, dict[str, float]]:
         # Called once per step by HalfCheetahEnv.step, whose info is built from this dict: putting

@@ -6,13 +6,29 @@ A 2-D point starting at the origin, actions in [-0.1, 0.1]^2 added to its positi
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task
+from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, non_finite_action_error
+
+
+def finite_move(env: object, action: Any) -> np.ndarray:
+    """
+    A point robot's action as a float64 array of shape (2,), refused if it holds a nan or an inf (the fast form of
+    :func:`~sb3_pearl.envs.task_protocol.refuse_non_finite_action`, for these microsecond steps).
+
+    :param env: the env (for the message)
+    :param action: the action given to ``step``
+    :return: the action
+    """
+    move = np.asarray(action, dtype=np.float64).reshape(2)
+    if not (math.isfinite(move[0]) and math.isfinite(move[1])):
+        raise non_finite_action_error(env, move)
+    return move
 
 
 class PointGoalMetaEnv(MetaTaskEnv, gym.Env):
@@ -64,7 +80,7 @@ class PointGoalMetaEnv(MetaTaskEnv, gym.Env):
         return self._obs(), {"cost": 0.0}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        action = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -self.max_step, self.max_step)
+        action = np.clip(finite_move(self, action), -self.max_step, self.max_step)
         self._pos = np.clip(self._pos + action, -2.0, 2.0)
         distance = float(np.linalg.norm(self._pos - self.goal))
         return self._obs(), -distance, False, False, {"cost": 0.0, "distance": distance}

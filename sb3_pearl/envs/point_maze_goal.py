@@ -40,7 +40,7 @@ import numpy as np
 from gymnasium_robotics.envs.maze.maps import LARGE_MAZE, MEDIUM_MAZE, OPEN, U_MAZE
 from gymnasium_robotics.envs.maze.point_maze import PointMazeEnv
 
-from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task
+from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, refuse_non_finite_action
 
 MAZES: dict[str, list[list[int | str]]] = {"umaze": U_MAZE, "open": OPEN, "medium": MEDIUM_MAZE, "large": LARGE_MAZE}
 
@@ -173,6 +173,7 @@ class PointMazeGoalMetaEnv(MetaTaskEnv, gym.Env):
         :param action: force, in [-1, 1]^2
         :return: observation ``[x, y, vx, vy]``, reward, terminated (always False), truncated, info
         """
+        refuse_non_finite_action(self, action)
         obs, reward, terminated, truncated, info = self.maze_env.step(action)
         info["cost"] = 0.0
         return obs["observation"], float(reward), terminated, truncated, info

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from sb3_pearl.envs.locomotion import check_range
-from sb3_pearl.envs.point_goal import PointGoalMetaEnv
+from sb3_pearl.envs.point_goal import PointGoalMetaEnv, finite_move
 from sb3_pearl.envs.task_protocol import Task
 
 
@@ -89,7 +89,7 @@ class SparsePointGoalMetaEnv(PointGoalMetaEnv):
         :param action: displacement, clipped to the action box
         :return: observation, reward, terminated, truncated, info (with ``distance`` and ``dense_reward``)
         """
-        action = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -self.max_step, self.max_step)
+        action = np.clip(finite_move(self, action), -self.max_step, self.max_step)
         self._pos = np.clip(self._pos + action, -2.0, 2.0)
         distance = math.hypot(self._pos[0] - self._goal_x, self._pos[1] - self._goal_y)
         reward = 1.0 - distance if distance <= self.reward_radius else 0.0

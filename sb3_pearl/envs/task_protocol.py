@@ -7,7 +7,9 @@ JSON-serialisable ``dict``:
   given as constructor kwargs (a shifted test distribution is one kwarg);
 - ``set_task(task)``: sticky until the next call, takes effect at the next ``reset()``;
 - ``get_task() -> dict``;
-- ``info["cost"]``: 1.0 on a step that violates safety, else 0.0.
+- ``info["cost"]``: 1.0 on a step that violates safety, else 0.0;
+- ``step(action)`` refuses an action holding nan or inf (:func:`refuse_non_finite_action`): stepped, it would
+  leave the state non-finite and be counted as a safe step (cost 0).
 
 :class:`MetaTaskEnv` is the mixin that holds the task bookkeeping; families implement
 ``_sample_task(rng)`` and read ``self._task`` (the task in force since the last reset).
@@ -24,6 +26,29 @@ import numpy as np
 Task = dict[str, Any]
 
 TASK_METHODS = ("sample_tasks", "set_task", "get_task")
+
+
+def refuse_non_finite_action(env: object, action: Any) -> None:
+    """
+    Raise a ``ValueError`` naming the env if ``action`` holds a nan or an inf (every family's ``step`` calls it first).
+
+    A diverged policy (or a non-finite observation fed to it) gives such actions; stepped, they leave the state
+    non-finite while ``info["cost"]`` says 0, so a diverged rollout would be counted as safe.
+
+    :param env: the env (for the message)
+    :param action: the action given to ``step``
+    """
+    values = np.asarray(action).ravel().tolist()
+    if not all(map(math.isfinite, values)):
+        raise non_finite_action_error(env, values)
+
+
+def non_finite_action_error(env: object, values: Any) -> ValueError:
+    """The error of :func:`refuse_non_finite_action` (families with a faster check of their own raise it too)."""
+    return ValueError(
+        f"{type(env).__name__}.step: the action {np.asarray(values).tolist()} is not finite: refused rather than stepped "
+        "(it would be counted as a safe step); the policy diverged or was given a non-finite observation"
+    )
 
 
 @runtime_checkable

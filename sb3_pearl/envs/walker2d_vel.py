@@ -32,7 +32,7 @@ from gymnasium.envs.mujoco.walker2d_v5 import Walker2dEnv
 from gymnasium.utils import EzPickle
 
 from sb3_pearl.envs.locomotion import LocomotionTaskEnv, check_range, validate_locomotion_kwargs
-from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.envs.task_protocol import Task, refuse_non_finite_action
 
 
 class Walker2dVelMetaEnv(LocomotionTaskEnv, Walker2dEnv):
@@ -86,5 +86,6 @@ class Walker2dVelMetaEnv(LocomotionTaskEnv, Walker2dEnv):
         :param action: torques, in [-1, 1]^6
         :return: observation, reward, terminated, truncated, info
         """
+        refuse_non_finite_action(self, action)
         obs, reward, terminated, truncated, info = super().step(action)
         return obs, self._finish_step(reward, terminated, info), terminated, truncated, info

@@ -98,7 +98,7 @@ class MetaTestCallback(BaseCallback):
             settings,
             self.eval_seed,
             progress_bar=self.verbose >= 1,
-            description="Meta-test (Ctrl-C stops training)",
+            description="Meta-test (Ctrl-C stops training after it)",
         )
         self.model.reset_adaptation()  # type: ignore[attr-defined]
         self.last_result = result

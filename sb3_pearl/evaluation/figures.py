@@ -15,7 +15,6 @@ family's ``ego_speed``).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from sb3_pearl.common.atomic import atomic_path  # noqa: E402
-from sb3_pearl.evaluation.meta_test import PAPER_KS, MetaTestResult  # noqa: E402
+from sb3_pearl.evaluation.meta_test import PAPER_KS, MetaTestResult, read_json  # noqa: E402
 
 if TYPE_CHECKING:
     from sb3_pearl.envs.task_protocol import Task
@@ -61,8 +60,7 @@ def load_run(path: str | os.PathLike[str]) -> tuple[str, MetaTestResult]:
             f"{json_path} not found: pass a run folder written by train.py or by the harness (or its meta_test.json)"
         )
     if json_path.name == "result.json":  # a harness run: the held-out meta-test record, labelled by its variant
-        with open(json_path) as file:
-            harness = json.load(file)
+        harness = read_json(json_path)
         return str(harness["variant"]), MetaTestResult.from_dict(harness["meta_test"])
     result = MetaTestResult.from_json(json_path)
     label = str(result.config.get("algo") or json_path.parent.parent.name or json_path.parent.name)

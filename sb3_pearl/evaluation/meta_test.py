@@ -73,6 +73,23 @@ def _csv_value(value: Any) -> Any:
     return value
 
 
+def read_json(path: str | os.PathLike[str]) -> Any:
+    """
+    A JSON file of the project (``meta_test.json``, ``result.json``); a truncated or edited one is an error that names it.
+
+    :param path: the file
+    :return: its content
+    """
+    with open(path) as file:
+        try:
+            return json.load(file)
+        except json.JSONDecodeError as error:
+            raise ValueError(
+                f"{path} is not valid JSON ({error}): truncated or edited; rerun what writes it (train.py's or the "
+                "harness's meta-test)"
+            ) from None
+
+
 @dataclass
 class MetaTestResult:
     """
@@ -162,8 +179,7 @@ class MetaTestResult:
     @classmethod
     def from_json(cls, path: str | os.PathLike[str]) -> MetaTestResult:
         """Read a result written by :meth:`to_json` (None back to nan in numbers)."""
-        with open(path) as file:
-            return cls.from_dict(json.load(file))
+        return cls.from_dict(read_json(path))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MetaTestResult:
@@ -417,5 +433,6 @@ __all__ = [
     "TRAJECTORY_INFO_KEYS_ATTR",
     "MetaTestResult",
     "meta_test",
+    "read_json",
     "rollout",
 ]

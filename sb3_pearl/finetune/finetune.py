@@ -472,21 +472,3 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
         self._create_aliases()
         self.batch_norm_stats = get_parameters_by_name(self.critic, ["running_"])
         self.batch_norm_stats_target = get_parameters_by_name(self.critic_target, ["running_"])
-
-    def predict(
-        self,
-        observation: np.ndarray | dict[str, np.ndarray],
-        state: tuple[np.ndarray, ...] | None = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = False,
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
-        """
-        Act with the fine-tuned policy (the pretrained one before any :meth:`adapt`), SB3 signature.
-
-        :param observation: the input observation
-        :param state: unused (no recurrent state)
-        :param episode_start: unused
-        :param deterministic: return deterministic actions
-        :return: the actions and ``None``
-        """
-        return self.adapted_policy.predict(observation, state, episode_start, deterministic)

@@ -14,7 +14,7 @@ from typing import Any
 
 from sb3_pearl.evaluation.statistics import wilson_interval
 from sb3_pearl.experiments import EXPERIMENTS
-from sb3_pearl.reproduce.layout import RESULT_FILE, find_results, read_result
+from sb3_pearl.reproduce.layout import RESULT_FILE, check_result_path, find_results, read_result
 from sb3_pearl.reproduce.stats import Interval, t_interval
 
 METRIC_KEYS = {"violation": "violation_rate", "return": "return_mean"}
@@ -41,12 +41,25 @@ def load_groups(results_dir: str | os.PathLike[str]) -> dict[tuple[str, str, str
     Every complete run under ``results_dir``, grouped; an experiment's group holds its declared seeds only (a shared
     variant's owner may hold more seeds, run for another experiment that declares them).
 
+    Every result must own its place: two files for one run, or a file whose fields disagree with its folder
+    (:func:`~sb3_pearl.reproduce.layout.check_result_path`) are refused, the files named, never one silently kept.
+
     :param results_dir: root of the results layout
     :return: (experiment, budget preset, family) -> variant -> seed -> result
     """
     groups: dict[tuple[str, str, str], Group] = defaultdict(lambda: defaultdict(dict))
-    for path in find_results(results_dir):
-        result = read_result(path)
+    owners: dict[tuple[str, ...], Path] = {}
+    results = [(path, read_result(path)) for path in find_results(results_dir)]
+    for path, result in results:  # duplicates first: their message names both files (a backup copy beside the runs)
+        run = tuple(str(result[key]) for key in ("experiment", "budget_preset", "family", "variant", "seed"))
+        if run in owners:
+            raise ValueError(
+                f"{owners[run]} and {path} both hold the result of {' '.join(run[:2])} {' '.join(run[2:4])} seed{run[4]}: "
+                "a report takes one result per run; delete or move the copy"
+            )
+        owners[run] = path
+    for path, result in results:
+        check_result_path(path, result)
         key = (result["experiment"], result["budget_preset"], result["family"])
         groups[key][result["variant"]][int(result["seed"])] = result
     return _shared_and_declared(groups)

@@ -13,11 +13,12 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from typing import Any
 
-from sb3_pearl.common.checks import positive_int
+from sb3_pearl.common.checks import output_folder_problem, positive_int
 from sb3_pearl.experiments import EXPERIMENTS, get_experiment
 from sb3_pearl.experiments.budgets import PRESETS, load_budget
 from sb3_pearl.experiments.spec import Experiment
@@ -29,16 +30,9 @@ RAY_OPTIONS = ("address", "cpus_per_run", "gpus_per_run", "retries", "storage_pa
 
 def check_results_dir(path: str) -> None:
     """Refuse, before any run starts, a results dir that is a file or cannot be written."""
-    import os
-
-    folder = os.path.abspath(path)
-    existing = folder
-    while not os.path.exists(existing):
-        existing = os.path.dirname(existing)
-    if not os.path.isdir(existing):
-        raise ValueError(f"--results-dir {path}: {existing} is a file, not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ValueError(f"--results-dir {path}: {existing} is not writable")
+    problem = output_folder_problem(path)
+    if problem is not None:
+        raise ValueError(f"--results-dir {path}: {problem}")
 
 
 CONFIRM_RUNS = 200  # a larger plan needs --yes (a typo in --seeds must not start days of runs)
@@ -241,6 +235,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "status":
             from sb3_pearl.reproduce.status import format_status, run_status
 
+            if not os.path.isdir(args.results_dir):
+                raise ValueError(f"--results-dir {args.results_dir} does not exist or is not a folder: no run to report on")
             experiment = get_experiment(args.experiment)
             seeds = parse_seeds(args.seeds) if args.seeds is not None else list(experiment.seeds)
             budget = args.budget or experiment.budget

@@ -114,6 +114,39 @@ def read_result(path: str | os.PathLike[str]) -> dict[str, Any]:
     return result
 
 
+def read_run_result(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """
+    :func:`read_result` of a ``result.json`` in the results layout, checked against its path: the run it names
+    (experiment, family, variant, seed) must be the run of its folder, else a copy or a moved file would stand for
+    another run in the tables.
+
+    :param path: ``<results-dir>/<experiment>/<family>/<variant>/seed<N>/result.json``
+    :return: the result
+    """
+    result = read_result(path)
+    check_result_path(path, result)
+    return result
+
+
+def check_result_path(path: str | os.PathLike[str], result: dict[str, Any]) -> None:
+    """
+    Raise a ``ValueError`` naming ``path`` if ``result`` (read from it) is not the result of the run of its folder.
+
+    :param path: ``<results-dir>/<experiment>/<family>/<variant>/seed<N>/result.json``
+    :param result: its content (:func:`read_result`)
+    """
+    experiment, family, variant, seed_folder = Path(path).parts[-5:-1]
+    expected = {"experiment": experiment, "family": family, "variant": variant, "seed": seed_folder}
+    found = {**{key: result[key] for key in ("experiment", "family", "variant")}, "seed": f"seed{result['seed']}"}
+    wrong = [f"{key} {found[key]!r} (its folder says {expected[key]!r})" for key in expected if found[key] != expected[key]]
+    if wrong:
+        raise ValueError(
+            f"{path} holds the result of another run: {', '.join(wrong)}. A result is reported only from its own run "
+            "folder: move it back to the folder of the run it names, or delete it (a copy of a results folder inside "
+            "the results folder is such a case)"
+        )
+
+
 MAX_SEEDS = 1000  # a typo such as 0-120000 is refused instead of planning runs for ever
 
 

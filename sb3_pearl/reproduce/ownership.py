@@ -2,7 +2,9 @@
 
 :func:`run_lock` is held by the process that trains a run (``run-one``) for as long as it runs: an ``flock`` on
 ``<run folder>/run.lock``, which holds the owner's pid. The kernel releases it when the process exits, however it
-exits, so a lock left by a dead process is never mistaken for a live one. Two ``reproduce run`` commands on the
+exits, so a lock left by a dead process is never mistaken for a live one; the owner removes the file when its run
+ends (finished or failed), still holding the lock, and a process that locked a file since removed tries again on the
+new one, so the lock stays exclusive. Two ``reproduce run`` commands on the
 same results folder therefore share the work: a run another process owns is skipped (:func:`lock_holder`), and a
 child that loses the race exits with :data:`LOCKED_EXIT` without touching the run's files.
 
@@ -22,6 +24,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import IO
 
 LOCK_FILE = "run.lock"
 PARENT_PID_ENV = "SB3_PEARL_PARENT_PID"  # set by `reproduce run` for its children
@@ -40,9 +43,11 @@ def lock_holder(folder: str | Path) -> int | None:
     :return: the owner's pid (0 if it could not be read), or None
     """
     path = Path(folder) / LOCK_FILE
-    if not path.is_file():
+    try:
+        file = open(path)  # noqa: SIM115  (never creates the file: a finished run leaves none)
+    except FileNotFoundError:
         return None
-    with open(path, "a+") as file:
+    with file:
         try:
             fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -65,26 +70,43 @@ def run_lock(folder: str | Path, wait_s: float = 2.0) -> Iterator[None]:
     """
     path = Path(folder) / LOCK_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
-    file = open(path, "a+")  # noqa: SIM115  (held open: the lock lives as long as the file descriptor)
+    deadline = time.monotonic() + wait_s
+    while True:
+        file = open(path, "a+")  # noqa: SIM115  (held open: the lock lives as long as the file descriptor)
+        try:
+            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                file.seek(0)
+                owner = file.read().strip() or "?"
+                file.close()
+                raise RunLockedError(f"{folder} is being run by another process (pid {owner})") from None
+            file.close()
+            time.sleep(0.1)
+            continue
+        if _same_file(file, path):
+            break
+        file.close()  # locked a file its owner removed when its run ended: lock the one at the path now
     try:
-        deadline = time.monotonic() + wait_s
-        while True:
-            try:
-                fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() >= deadline:
-                    file.seek(0)
-                    owner = file.read().strip() or "?"
-                    raise RunLockedError(f"{folder} is being run by another process (pid {owner})") from None
-                time.sleep(0.1)
         file.seek(0)
         file.truncate()
         file.write(f"{os.getpid()}\n")
         file.flush()
         yield
     finally:
+        with contextlib.suppress(OSError):
+            path.unlink()  # still holding the lock: whoever opened this file finds it removed and tries again
         file.close()  # releases the lock
+
+
+def _same_file(file: IO[str], path: Path) -> bool:
+    """Whether the open ``file`` is still the one at ``path`` (not removed, nor replaced)."""
+    try:
+        on_disk = path.stat()
+    except FileNotFoundError:
+        return False
+    opened = os.fstat(file.fileno())
+    return (opened.st_dev, opened.st_ino) == (on_disk.st_dev, on_disk.st_ino)
 
 
 def die_with_parent() -> None:

@@ -461,6 +461,8 @@ def write_report(results_dir: str | os.PathLike[str], out: str | os.PathLike[str
     if not find_results(root):
         raise ValueError(f"results folder {root} holds no result.json: nothing reported, {out} left as it is")
     out = Path(out)
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder: give the markdown file to write, e.g. {out / 'results.md'}")
     out.parent.mkdir(parents=True, exist_ok=True)
     figures_dir = out.parent / "figures"
     figures_dir.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_result, run_dir
+from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
 from sb3_pearl.reproduce.scheduler import plan_runs
 from sb3_pearl.reproduce.stats import mean_finite
 
@@ -81,7 +81,7 @@ def run_status(
     for key in keys:
         path = run_dir(results_dir, key) / RESULT_FILE
         if path.is_file():
-            finished[key] = read_result(path)
+            finished[key] = read_run_result(path)
 
     def siblings(key: RunKey) -> list[tuple[float, float]]:
         algo = experiment.variant(key.variant).algo

@@ -7,7 +7,7 @@
 - :mod:`sb3_pearl.zoo.experiment_manager`: :class:`MetaExperimentManager` (rl_zoo3's
   ``ExperimentManager`` with the project's hyperparameter files and the meta-test) and :func:`train`, put together
   from :mod:`~sb3_pearl.zoo.meta_testing` (evaluation callback, Optuna score, final meta-test),
-  :mod:`~sb3_pearl.zoo.interruptions` (SIGTERM and exceptions save the model) and :mod:`~sb3_pearl.zoo.flags`
+  :mod:`~sb3_pearl.zoo.interruptions` (signals and exceptions save the model) and :mod:`~sb3_pearl.zoo.flags`
   (``--budget``, ``--resume``); :mod:`~sb3_pearl.zoo.model_checks`: a saved model against its env;
 - :mod:`sb3_pearl.zoo.replay`: :func:`enjoy`, prior and posterior rollouts of a trained model;
 - :mod:`sb3_pearl.zoo.budget`: ``train.py --budget PRESET`` (a budget preset's entry as the hyperparameters);

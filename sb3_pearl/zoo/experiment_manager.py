@@ -7,7 +7,8 @@
   algorithm does not take, the ``meta_test`` key, and ``--resume``'s replay buffer;
 - :mod:`sb3_pearl.zoo.meta_testing`: the meta-test as the evaluation callback, the Optuna score and the final
   meta-test (``meta_test.csv``, ``meta_test.json``, ``adaptation.png`` in the run folder);
-- :mod:`sb3_pearl.zoo.interruptions`: SIGTERM and exceptions save the model, as Ctrl-C does.
+- :mod:`sb3_pearl.zoo.interruptions`: SIGTERM and Ctrl-C stop training where it resumes exactly (the run marked cut),
+  and exceptions save the model.
 
 :func:`train` runs ``rl_zoo3.train.train()`` with it and the project's algorithms (argument parsing, log layout and the
 Optuna loop are rl_zoo3's), after the project's own flags (:mod:`sb3_pearl.zoo.flags`); user errors are one line with
@@ -25,8 +26,12 @@ from __future__ import annotations
 
 import difflib
 import functools
+import importlib
 import importlib.util
+import inspect
 import os
+import re
+import shutil
 import sys
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -34,12 +39,15 @@ from pprint import pprint
 from typing import Any
 from unittest import mock
 
+import gymnasium as gym
 import rl_zoo3.train
 from rl_zoo3 import ALGOS
+from rl_zoo3.utils import get_latest_run_id
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import has_adaptation_api
+from sb3_pearl.common.checks import check_learning_rate
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.held_out import model_test_tasks, write_meta_test
@@ -90,7 +98,10 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
     :param args: rl_zoo3's arguments (its ``ExperimentManager``'s, as are ``algo``, ``env_id``, ``log_folder`` and the rest)
     :param resume: ``--resume``: continue the checkpoint given as ``-i`` with its counters, up to ``n_timesteps`` in all
     :param budget: ``--budget PRESET``: the family's entry of that budget preset replaces the YAML entry
+    :param command: ``train.py``'s command line (the resume command of a run cut by a signal is made from it)
     """
+
+    _reserved_folder: str | None = None  # the run folder this manager created (removed if the set-up fails)
 
     def __init__(
         self,
@@ -101,11 +112,12 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         *posargs: Any,
         resume: bool = False,
         budget: str | None = None,
+        command: Sequence[str] = (),
         **kwargs: Any,
     ) -> None:
         if kwargs.get("config") is None and os.path.isfile(default_config(algo)):
             kwargs["config"] = default_config(algo)  # else rl_zoo3's own file (its algorithms)
-        self.resume, self.budget = resume, budget
+        self.resume, self.budget, self.command = resume, budget, list(command)
         super().__init__(args, algo, env_id, log_folder, *posargs, **kwargs)
         self.meta_test_kwargs = dict(ZOO_META_TEST_DEFAULTS)
         self.adaptive = has_adaptation_api(ALGOS[algo])
@@ -160,6 +172,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
                 f"{algo_class.__name__} does not take the hyperparameter(s) {', '.join(named)} given in {where} "
                 f"(the accepted ones: help({algo_class.__name__}) and the zoo keys of docs/cli.md)"
             )
+        self._check_learning_rate(hyperparams.get("learning_rate"))
         meta = hyperparams.get("meta_test") or {}
         if isinstance(meta, str):  # the zoo's convention for dict values given as strings, parsed without eval()
             meta = parse_dict_string(meta, "meta_test")
@@ -168,6 +181,26 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         eval_seed = meta.get("eval_seed", 0)
         if isinstance(eval_seed, bool) or not isinstance(eval_seed, int) or eval_seed < 0:
             raise UsageError(f"meta_test eval_seed must be an integer >= 0 (the seed of the test tasks), got {eval_seed!r}")
+
+    def _check_learning_rate(self, learning_rate: Any) -> None:
+        """
+        The constructors' learning-rate check, made here: rl_zoo3 wraps a number (and ``lin_<x>``) into a schedule,
+        which the constructors take without looking inside (a nan reached torch).
+
+        :param learning_rate: the entry's value (a number, ``"lin_<x>"``, or None)
+        """
+        where = "-params" if "learning_rate" in (self.custom_hyperparams or {}) else f"{self.config} [{self.env_name.gym_id}]"
+        value = learning_rate
+        if isinstance(learning_rate, str) and "_" in learning_rate:
+            try:
+                value = float(learning_rate.split("_", 1)[1])
+            except ValueError:
+                raise UsageError(f"learning_rate in {where}: {learning_rate!r} is not a number or lin_<number>") from None
+        if value is not None and not callable(value):
+            try:
+                check_learning_rate("learning_rate", value)
+            except ValueError as error:
+                raise UsageError(f"{error} (in {where})") from None
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
         meta = hyperparams.pop("meta_test", None) or {}
@@ -181,7 +214,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         rl_zoo3's set-up; a ValueError on the way (a value the env or the algorithm refuses) is a user error. For an
         algorithm with the adaptation API, the held-out tasks of the meta-tests are drawn once here, so that a draw
         that hits training tasks (``--seed`` equal to the eval seed, a family with few distinct tasks) is refused
-        before training, not after it.
+        before training, not after it. A set-up that fails removes the run folder it reserved: nothing is left behind.
         """
         try:
             setup = super().setup_experiment()
@@ -189,9 +222,36 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
                 self._check_held_out_tasks(setup[0])
             return setup
         except UsageError:
+            self._remove_reserved_folder()
             raise
         except ValueError as error:
+            self._remove_reserved_folder()
             raise UsageError(str(error)) from error
+        except TypeError as error:
+            self._remove_reserved_folder()
+            if "unexpected keyword argument" in str(error) and (self.env_kwargs or self.eval_env_kwargs):
+                raise UsageError(env_kwargs_error(self.env_name.gym_id, error)) from None
+            raise
+        except BaseException:
+            self._remove_reserved_folder()
+            raise
+
+    def create_log_folder(self) -> None:
+        """
+        Reserve the run folder ``<log folder>/<algo>/<EnvId>_<n>``: created exclusively, the next free number taken on a
+        collision (rl_zoo3 picks ``n`` when the manager is made and creates the folder later with ``exist_ok``, so two
+        runs started together shared one folder: one's model, args.yml and monitor file over the other's).
+        """
+        self.save_path = reserve_run_folder(self.log_path, str(self.env_name), self.save_path)
+        self._reserved_folder = self.save_path
+        self.params_path = f"{self.save_path}/{self.env_name}"
+        os.makedirs(self.params_path, exist_ok=True)
+
+    def _remove_reserved_folder(self) -> None:
+        folder = getattr(self, "_reserved_folder", None)
+        if folder is not None and os.path.isdir(folder):
+            shutil.rmtree(folder, ignore_errors=True)  # created by this process, empty of results
+        self._reserved_folder = None
 
     def _check_held_out_tasks(self, model: BaseAlgorithm) -> None:
         settings = self.meta_test_kwargs
@@ -220,6 +280,49 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             self.final_meta_test(model)
 
 
+def env_kwargs_error(env_id: str, error: TypeError) -> str:
+    """
+    The one-line message for an ``--env-kwargs`` (or YAML ``env_kwargs``) key the env's constructor does not take.
+
+    :param env_id: the env id
+    :param error: the constructor's ``TypeError``
+    :return: the message, with the constructor's parameters
+    """
+    match = re.search(r"unexpected keyword argument '([^']+)'", str(error))
+    key = match.group(1) if match else str(error)
+    spec = gym.spec(env_id)
+    accepted = ""
+    if isinstance(spec.entry_point, str):
+        module, _, name = spec.entry_point.partition(":")
+        parameters = inspect.signature(getattr(importlib.import_module(module), name)).parameters
+        accepted = (
+            " (its parameters: " + ", ".join(p for p, v in parameters.items() if v.kind == v.POSITIONAL_OR_KEYWORD) + ")"
+        )
+    return f"--env-kwargs / env_kwargs: {env_id} does not take {key!r}{accepted}"
+
+
+def reserve_run_folder(log_path: str, env_name: str, planned: str) -> str:
+    """
+    Create a run folder exclusively: ``planned`` (``<log_path>/<env_name>_<n><suffix>``, rl_zoo3's choice), or the
+    next free number when another process took it first.
+
+    :param log_path: the algorithm's log folder
+    :param env_name: the env id as rl_zoo3 writes it
+    :param planned: the folder rl_zoo3 chose
+    :return: the folder created, which this process owns
+    """
+    match = re.fullmatch(re.escape(env_name) + r"_(\d+)(.*)", os.path.basename(planned))
+    number, suffix = (int(match.group(1)), match.group(2)) if match else (get_latest_run_id(log_path, env_name) + 1, "")
+    os.makedirs(log_path, exist_ok=True)
+    while True:
+        folder = os.path.join(log_path, f"{env_name}_{number}{suffix}")
+        try:
+            os.mkdir(folder)
+            return folder
+        except FileExistsError:
+            number = max(number, get_latest_run_id(log_path, env_name)) + 1
+
+
 def train(argv: Sequence[str] | None = None) -> None:
     """
     ``rl_zoo3.train.train()`` with the project's algorithms, hyperparameter files and meta-test.
@@ -237,7 +340,7 @@ def train(argv: Sequence[str] | None = None) -> None:
     register_algos()
     with exit_on_usage_error():
         flags = parse_project_flags(list(sys.argv[1:] if argv is None else argv))
-        manager = functools.partial(MetaExperimentManager, resume=flags.resume, budget=flags.budget)
+        manager = functools.partial(MetaExperimentManager, resume=flags.resume, budget=flags.budget, command=flags.command)
         with (
             mock.patch.object(sys, "argv", [sys.argv[0], *flags.zoo_args]),
             mock.patch.object(rl_zoo3.train, "ExperimentManager", manager),

@@ -8,6 +8,7 @@ import importlib
 import os
 from typing import NamedTuple
 
+from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.usage import UsageError, check_env_id
@@ -18,13 +19,17 @@ sb3-pearl flags (docs/cli.md):
                         cpu (PEARL / PEARL+ runs of 8-42 min on one core), smoke or paper
                         (sb3_pearl/config/presets/; -n and -params still override it)
   --resume CHECKPOINT   continue a --save-freq checkpoint (or a run's model) up to n_timesteps in all, with its
-                        replay buffer and RNG states"""
+                        replay buffer and RNG states
+  --resume-without-buffer
+                        let --resume go on when the checkpoint has no replay buffer beside it (the run then
+                        restarts from an empty buffer and differs from an uninterrupted one)"""
 
 
 class ProjectFlags(NamedTuple):
     """The command line split: what rl_zoo3 parses, and the project's settings for the experiment manager."""
 
     zoo_args: list[str]  # rl_zoo3's arguments (``--resume X`` became ``--trained-agent X``, ``--budget P`` removed)
+    command: list[str]  # the command line as given (the resume command of a cut run is made from it)
     resume: bool  # --resume: -i continues the checkpoint's run (counters kept) up to n_timesteps in all
     budget: str | None  # --budget PRESET: the family's entry of that budget preset replaces the YAML entry
 
@@ -36,8 +41,14 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
     :param args: the command line (not changed)
     :return: rl_zoo3's arguments and the project's settings
     """
+    command, args = list(args), list(args)
     resume, budget = False, None
     args = usage.check_n_timesteps(args)
+    usage.check_seed(args)
+    usage.check_log_folder(args)
+    without_buffer = "--resume-without-buffer" in args
+    if without_buffer:
+        args.remove("--resume-without-buffer")
     if "--resume" in args:
         index = args.index("--resume")
         if index + 1 >= len(args) or not os.path.isfile(args[index + 1]) or not args[index + 1].endswith(".zip"):
@@ -48,6 +59,8 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
             raise UsageError("--resume and -i/--trained-agent exclude each other (--resume is -i that keeps the counters)")
         args[index] = "--trained-agent"
         resume = True
+    elif without_buffer:
+        raise UsageError("--resume-without-buffer goes with --resume CHECKPOINT")
     peek = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     peek.add_argument("--env", default=None)
     peek.add_argument("--algo", default=None)
@@ -66,7 +79,31 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
         if known.algo is not None and known.env is not None:
             budget_hyperparams(known.budget, known.env, known.algo)  # an unknown preset or entry: the error now
         budget = known.budget
-    return ProjectFlags(args, resume, budget)
+    if resume and not without_buffer:
+        check_resume_buffer(args[args.index("--trained-agent") + 1], known.algo)
+    return ProjectFlags(args, command, resume, budget)
 
 
-__all__ = ["PROJECT_FLAGS_HELP", "ProjectFlags", "parse_project_flags"]
+def check_resume_buffer(checkpoint: str, algo: str | None) -> None:
+    """
+    Refuse ``--resume`` of an off-policy model without its replay buffer (the run would restart from an empty buffer
+    and no longer continue the interrupted one), unless ``--resume-without-buffer`` is given.
+
+    :param checkpoint: the model zip
+    :param algo: the ``--algo`` value
+    """
+    from rl_zoo3 import ALGOS
+
+    algo_class = ALGOS.get(algo or "")
+    if algo_class is None or not hasattr(algo_class, "load_replay_buffer"):
+        return  # on-policy (MAML): nothing to resume but the model
+    candidates = [path for path in (checkpoint_replay_buffer_path(checkpoint),) if path is not None]
+    candidates.append(os.path.join(os.path.dirname(checkpoint), "replay_buffer.pkl"))
+    if not any(os.path.isfile(path) for path in candidates):
+        raise UsageError(
+            f"--resume {checkpoint}: no replay buffer beside it ({' or '.join(candidates)}), so the run would restart "
+            "from an empty buffer and differ from the uninterrupted one; add --resume-without-buffer to go on anyway"
+        )
+
+
+__all__ = ["PROJECT_FLAGS_HELP", "ProjectFlags", "check_resume_buffer", "parse_project_flags"]

@@ -1,16 +1,20 @@
-"""Interruptions of ``train.py``: SIGTERM and exceptions save the model, as Ctrl-C does in rl_zoo3 (docs/cli.md).
+"""Interruptions of ``train.py``: SIGTERM, Ctrl-C (SIGINT) and exceptions save the model (docs/cli.md).
 
 :class:`InterruptibleExperimentManager` is rl_zoo3's ``ExperimentManager`` with:
 
-- SIGTERM (``kill``, a batch scheduler's time limit) stopping training like Ctrl-C: the model is saved, what follows
-  the save is skipped and ``train.py`` exits with status 143 (128 + SIGTERM);
+- SIGTERM (``kill``, a batch scheduler's time limit) and SIGINT (Ctrl-C) handled alike: training stops at the next
+  point where it can be resumed exactly (:class:`StopOnSignalCallback`; a second signal stops at once), the model and
+  its replay buffer are saved, the run is marked cut (``interrupted.json`` in the run folder, what follows the save
+  is skipped) and ``train.py`` exits with status 128 + the signal (143 for SIGTERM, 130 for SIGINT);
 - an exception during training saving the model reached so far into the run folder, saying where, re-raised;
 - ``--resume`` (:attr:`resume`): training continues a checkpoint's run with its counters, up to ``n_timesteps``.
 """
 
 from __future__ import annotations
 
+import json
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -19,42 +23,85 @@ from typing import Any
 
 from rl_zoo3.exp_manager import ExperimentManager
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.zoo.usage import program_name
+
+INTERRUPTED_FILE = "interrupted.json"  # in the run folder of a run cut by a signal
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+class StopRequested(KeyboardInterrupt):
+    """Raised at an iteration start once a stop was asked for: rl_zoo3's ``learn`` stops as after Ctrl-C."""
+
+
+class StopOnSignalCallback(BaseCallback):
+    """
+    Stops training, once :attr:`requested`, where the state is one a checkpoint holds, so the saved model resumes
+    exactly: at the next rollout start (PEARL and MAML call it at an iteration start, before the iteration's draws;
+    Fine-Tune and SB3's algorithms before each collection), or, for PEARL / PEARL+, at the next env step (the
+    iteration is kept open, ``model._open_iteration``, and finished by the resumed run).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.requested = False
+        self.stopped = False  # training stopped here (False: it ended on its own or was stopped at once)
+
+    def _on_step(self) -> bool:
+        if self.requested and hasattr(self.model, "_open_iteration"):
+            self.stopped = True
+            return False
+        return True
+
+    def _on_rollout_start(self) -> None:
+        if self.requested:
+            self.stopped = True
+            raise StopRequested
 
 
 class InterruptibleExperimentManager(ExperimentManager):
-    """rl_zoo3's ``ExperimentManager`` whose training survives SIGTERM and exceptions, model saved (module docstring)."""
+    """rl_zoo3's ``ExperimentManager`` whose training survives signals and exceptions, model saved (module docstring)."""
 
     resume: bool = False  # --resume: continue the checkpoint's run (counters kept) up to n_timesteps in all
+    command: list[str] = []  # noqa: RUF012  (train.py's command line, set per instance)
+    _stop_signal: str | None = None
+    _phase: str = "setup"  # "training", "saving", "after save": what a signal does (_on_signal)
+    _previous_handlers: dict[int, Any]  # the signal handlers to restore
 
     def learn(self, model: BaseAlgorithm) -> None:
         """
-        rl_zoo3's ``learn`` (Ctrl-C stops training and the model is saved), plus:
+        rl_zoo3's ``learn``, plus:
 
-        - SIGTERM (``kill``, a batch scheduler's time limit) stops training the same way; the model is saved,
-          the final meta-test is skipped and ``train.py`` exits with status 143 (128 + SIGTERM);
+        - SIGTERM and SIGINT (Ctrl-C) stop training at the next point where the run resumes exactly (a second signal
+          stops at once); the model and its replay buffer are saved, the run is marked cut and ``train.py`` exits with
+          status 128 + the signal (:meth:`save_trained_model`);
         - an exception during training saves the model reached so far into the run folder, says where, and is
           re-raised.
 
         :param model: the model to train
         """
-        self._stop_signal: str | None = None
-        self._sigterm_raises = True
-        self._previous_sigterm_handler = self._install_sigterm_handler()
+        self._stop_signal = None
+        self._stop_callback = StopOnSignalCallback()
+        self.callbacks.append(self._stop_callback)
+        self._phase = "training"
+        self._previous_handlers = self._install_signal_handlers()
         try:
             if self.resume and self.continue_training:
                 self._learn_resumed(model)
             else:
                 super().learn(model)
         except Exception as error:
-            self._restore_sigterm_handler()
+            self._restore_signal_handlers()
             self._save_after_failure(model, error)
             raise
-        self._sigterm_raises = False  # from here on, a SIGTERM no longer interrupts the save
+        self._phase = "saving"  # from here on, a signal no longer interrupts the save
 
     def _learn_resumed(self, model: BaseAlgorithm) -> None:
         """
         ``train.py --resume``: continue the checkpoint's run up to ``n_timesteps`` in all (its counters kept,
-        ``reset_num_timesteps=False``), as rl_zoo3's ``learn`` otherwise (Ctrl-C stops and saves).
+        ``reset_num_timesteps=False``), as rl_zoo3's ``learn`` otherwise (a stop saves the model).
         """
         remaining = self.n_timesteps - model.num_timesteps
         print(f"Resuming at {model.num_timesteps} timesteps: {max(remaining, 0)} to go (n_timesteps {self.n_timesteps})")
@@ -79,24 +126,36 @@ class InterruptibleExperimentManager(ExperimentManager):
             except EOFError:
                 pass
 
-    def _install_sigterm_handler(self) -> Any:
+    def _install_signal_handlers(self) -> dict[int, Any]:
         if threading.current_thread() is not threading.main_thread():
-            return None  # signal handlers can only be installed by the main thread
-        return signal.signal(signal.SIGTERM, self._on_sigterm)
+            return {}  # signal handlers can only be installed by the main thread
+        return {signum: signal.signal(signum, self._on_signal) for signum in STOP_SIGNALS}
 
-    def _restore_sigterm_handler(self) -> None:
-        previous = getattr(self, "_previous_sigterm_handler", None)
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-            self._previous_sigterm_handler = None
+    def _restore_signal_handlers(self) -> None:
+        for signum, previous in (getattr(self, "_previous_handlers", None) or {}).items():
+            signal.signal(signum, previous)
+        self._previous_handlers = {}
 
-    def _on_sigterm(self, signum: int, frame: FrameType | None) -> None:
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        name = signal.Signals(signum).name
         first = self._stop_signal is None
-        self._stop_signal = "SIGTERM"
-        if first and self._sigterm_raises:
-            print("Received SIGTERM: stopping training and saving the model (SIGKILL stops without saving)", flush=True)
-            raise KeyboardInterrupt  # rl_zoo3's learn() / the meta-test stop as after Ctrl-C
-        print("Received SIGTERM: finishing the save first", flush=True)
+        self._stop_signal = self._stop_signal or name
+        if self._phase == "training" and first:
+            self._stop_callback.requested = True
+            print(
+                f"Received {name}: stopping training where it resumes exactly (the next iteration start or env step), "
+                f"then saving the model and its replay buffer; {name} again stops at once (the resume is then not "
+                "exact), SIGKILL stops without saving",
+                flush=True,
+            )
+        elif self._phase == "training":
+            print(f"Received {name} again: stopping training now", flush=True)
+            raise KeyboardInterrupt
+        elif self._phase == "after save":
+            print(f"Received {name}: stopping the final meta-test (the model is saved)", flush=True)
+            raise KeyboardInterrupt
+        else:
+            print(f"Received {name}: finishing the save first", flush=True)
 
     def _model_path(self) -> str:
         return os.path.join(self.save_path, f"{self.env_name}.zip")
@@ -118,31 +177,77 @@ class InterruptibleExperimentManager(ExperimentManager):
         )
 
     def save_trained_model(self, model: BaseAlgorithm) -> None:
-        """rl_zoo3's save (model, replay buffer), then :meth:`after_save` unless training was stopped by SIGTERM."""
-        self._sigterm_raises = False
-        if getattr(self, "_previous_sigterm_handler", None) is None:
-            self._stop_signal = getattr(self, "_stop_signal", None)
-            self._previous_sigterm_handler = self._install_sigterm_handler()
+        """
+        rl_zoo3's save (model, replay buffer, normalisation), then :meth:`after_save` unless a signal stopped training.
+        A run stopped by a signal also gets its replay buffer saved (what an exact resume needs), ``interrupted.json``
+        and the exit status 128 + the signal; so does a run whose :meth:`after_save` a signal stopped.
+        """
+        self._phase = "saving"
+        if not getattr(self, "_previous_handlers", None):
+            self._previous_handlers = self._install_signal_handlers()
+        stopped_in_training = self._stop_signal is not None
         try:
             super().save_trained_model(model)
-            if self._stop_signal is None:
-                self._sigterm_raises = True  # a SIGTERM now stops what follows the save, as Ctrl-C does
+            buffer_path = None
+            if stopped_in_training and getattr(model, "replay_buffer", None) is not None:
+                buffer_path = os.path.join(self.save_path, "replay_buffer.pkl")
+                if not self.save_replay_buffer:
+                    print("Saving replay buffer (for the resume)")
+                    model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
+            if not stopped_in_training:
+                self._phase = "after save"  # a signal now stops what follows the save
                 try:
                     self.after_save(model)
                 except KeyboardInterrupt:
-                    print("Meta-test interrupted: the model is saved, meta_test.* not written")
+                    print("Final meta-test interrupted: the model is saved, meta_test.* not written")
         finally:
-            self._restore_sigterm_handler()
+            self._phase = "done"
+            self._restore_signal_handlers()
         if self._stop_signal is not None:
+            self._mark_interrupted(model, stopped_in_training, buffer_path if stopped_in_training else None)
+
+    def _mark_interrupted(self, model: BaseAlgorithm, in_training: bool, buffer_path: str | None) -> None:
+        """Write ``interrupted.json``, say what was saved and how to go on, and exit with status 128 + the signal."""
+        assert self._stop_signal is not None
+        signum = int(signal.Signals[self._stop_signal])
+        exact = in_training and (self._stop_callback.stopped or model.num_timesteps >= self.n_timesteps)
+        args = [arg for arg in self.command if arg != "--resume-without-buffer"]
+        for flag in ("--resume", "--trained-agent", "-i"):
+            while flag in args:
+                index = args.index(flag)
+                del args[index : index + 2]
+        resume = " ".join([program_name(), *map(shlex.quote, args), "--resume", shlex.quote(self._model_path())])
+        record = {
+            "signal": self._stop_signal,
+            "during": "training" if in_training else "final meta-test",
+            "num_timesteps": int(model.num_timesteps),
+            "n_timesteps": int(self.n_timesteps),
+            "model": self._model_path(),
+            "replay_buffer": buffer_path,
+            "exact_resume": bool(exact),
+            "resume": resume if in_training else None,
+        }
+        with atomic_write(os.path.join(self.save_path, INTERRUPTED_FILE), "w") as file:
+            json.dump(record, file, indent=1)
+        if in_training:
+            how = "exactly" if exact else "approximately (stopped at once: not where an exact resume is possible)"
             print(
-                f"Stopped by {self._stop_signal} at {model.num_timesteps} timesteps: the model is saved to "
-                f"{self._model_path()} (final meta-test skipped; continue with train.py -i {self._model_path()})",
+                f"Stopped by {self._stop_signal} at {model.num_timesteps} of {self.n_timesteps} timesteps: the run is cut "
+                f"(final meta-test skipped, {INTERRUPTED_FILE} written); the model is saved to {self._model_path()}"
+                + (f" with its replay buffer {buffer_path}" if buffer_path else "")
+                + f". It resumes {how} with: {resume}",
                 flush=True,
             )
-            raise SystemExit(128 + signal.SIGTERM)
+        else:
+            print(
+                f"Stopped by {self._stop_signal} during the final meta-test: training is complete and the model saved to "
+                f"{self._model_path()}; meta_test.* not written ({INTERRUPTED_FILE} written)",
+                flush=True,
+            )
+        raise SystemExit(128 + signum)
 
     def after_save(self, model: BaseAlgorithm) -> None:
-        """What runs once the trained model is saved (the meta-test manager's final meta-test); Ctrl-C / SIGTERM stop it."""
+        """What runs once the trained model is saved (the meta-test manager's final meta-test); a signal stops it."""
 
 
-__all__ = ["InterruptibleExperimentManager"]
+__all__ = ["INTERRUPTED_FILE", "InterruptibleExperimentManager", "StopOnSignalCallback", "StopRequested"]

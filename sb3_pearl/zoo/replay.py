@@ -232,7 +232,10 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     elif render and env_kwargs.get("render_mode") == "rgb_array":
         env = HumanRendering(env)
 
-    model = ALGOS[args.algo].load(model_path, device=args.device)
+    try:
+        model = ALGOS[args.algo].load(model_path, device=args.device)
+    except ValueError as error:  # a truncated or corrupt zip, or one of another algorithm
+        raise UsageError(str(error)) from None
     check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
     try:
         tasks = model_test_tasks(model, env, args.n_tasks, eval_seed, model_path)

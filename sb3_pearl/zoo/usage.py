@@ -19,6 +19,8 @@ from typing import Any
 import gymnasium as gym
 from rl_zoo3.utils import StoreDict
 
+from sb3_pearl.common.checks import output_folder_problem
+
 EXIT_USAGE = 2  # argparse's status for a bad command line
 
 
@@ -94,7 +96,65 @@ class CheckedStoreDict(StoreDict):
         super().__call__(parser, namespace, values, option_string)
 
 
-__all__ = ["EXIT_USAGE", "CheckedStoreDict", "UsageError", "UsageExit", "check_env_id", "exit_on_usage_error", "program_name"]
+__all__ = [
+    "EXIT_USAGE",
+    "CheckedStoreDict",
+    "UsageError",
+    "UsageExit",
+    "check_env_id",
+    "check_log_folder",
+    "check_n_timesteps",
+    "check_seed",
+    "check_yaml_n_timesteps",
+    "exit_on_usage_error",
+    "flag_values",
+    "program_name",
+]
+
+
+def flag_values(args: list[str], names: tuple[str, ...]) -> Iterator[tuple[str, str]]:
+    """
+    The values given to the flags ``names`` on the command line (``-n 5`` or ``-n=5``), as written.
+
+    :param args: the command line
+    :param names: the flag's spellings
+    :return: (spelling, value) pairs
+    """
+    for index, arg in enumerate(args):
+        name, _, value = arg.partition("=")
+        if name in names:
+            yield name, value or (args[index + 1] if index + 1 < len(args) else "")
+
+
+MAX_SEED = 2**32 - 1  # numpy's and rl_zoo3's bound
+
+
+def check_seed(args: list[str]) -> None:
+    """
+    Refuse a ``--seed`` outside [0, 2**32 - 1] at parse time (rl_zoo3 replaced a negative one by a random seed, and
+    numpy refused a larger one with a traceback).
+
+    :param args: the command line
+    """
+    for name, value in flag_values(args, ("--seed",)):
+        try:
+            seed = int(value)
+        except ValueError:
+            seed = None
+        if seed is None or not 0 <= seed <= MAX_SEED:
+            raise UsageError(f"{name} must be an integer in [0, {MAX_SEED}] (omit it for a random seed), got {value!r}")
+
+
+def check_log_folder(args: list[str]) -> None:
+    """
+    Refuse a ``-f`` / ``--log-folder`` that is a file, lies under a file or cannot be written, before anything is built.
+
+    :param args: the command line
+    """
+    for name, value in flag_values(args, ("-f", "--log-folder")):
+        problem = output_folder_problem(value)
+        if problem is not None:
+            raise UsageError(f"{name} {value}: {problem}: give a folder for the run folders that you can write to")
 
 
 def check_n_timesteps(args: list[str]) -> list[str]:

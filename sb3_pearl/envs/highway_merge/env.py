@@ -30,7 +30,7 @@ from sb3_pearl.envs.highway_merge.geometry import (
 from sb3_pearl.envs.highway_merge.hidas import HidasParams, hidas_should_yield, min_braking
 from sb3_pearl.envs.highway_merge.road import MergeRoad
 from sb3_pearl.envs.highway_merge.traffic import IDMParams, calibrate_idm, idm_acceleration
-from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task
+from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, refuse_non_finite_action
 
 MPH = 0.44704
 """One mile per hour in m/s."""
@@ -319,6 +319,7 @@ class HighwayMergeMetaEnv(MetaTaskEnv, AbstractEnv):
         return obs, info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        refuse_non_finite_action(self, action)
         action = int(action)
         if not 0 <= action < 5:
             raise ValueError(f"action must be in 0..4, got {action}")
