@@ -29,6 +29,7 @@ from stable_baselines3.common.type_aliases import MaybeCallback
 from sb3_pearl.common.adaptation import check_finite_transition
 from sb3_pearl.common.checks import check_task_counts
 from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
+from sb3_pearl.common.threads import apply_default_num_threads
 from sb3_pearl.envs.task_protocol import Task
 
 if TYPE_CHECKING:
@@ -167,6 +168,7 @@ class MetaAlgorithm(_AlgorithmBase):
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
         self._check_train_tasks()
+        apply_default_num_threads(self.policy)  # the fastest count for these networks, unless the user chose one
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def training_plan(self, total_timesteps: int) -> TrainingPlan | None:
