@@ -7,7 +7,7 @@ import pickle
 import numpy as np
 from gymnasium import spaces
 
-from sb3_pearl.common.buffers import TaskReplayBuffer
+from sb3_pearl.common.buffers import TaskReplayBuffer, gather_rows
 
 OBS = spaces.Box(-1.0, 1.0, (3,), np.float32)
 ACT = spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -129,3 +129,12 @@ def test_a_rows_in_use_pickle_without_shared_next_observations_still_loads() -> 
     for name in TaskReplayBuffer._ARRAYS:
         for task, n in enumerate(buffer.size):
             np.testing.assert_array_equal(getattr(old, name)[task, :n], getattr(buffer, name)[task, :n])
+
+
+def test_gather_rows_is_the_fancy_index() -> None:
+    rng = np.random.default_rng(0)
+    array = rng.standard_normal((5, 7, 3)).astype(np.float32)
+    tasks, rows = np.array([4, 0, 4]), rng.integers(0, 7, (3, 6))
+    np.testing.assert_array_equal(gather_rows(array, tasks, rows), array[tasks[:, None], rows])
+    strided = array[:, ::2]  # not contiguous: the fancy index itself
+    np.testing.assert_array_equal(gather_rows(strided, tasks, rows % 4), strided[tasks[:, None], rows % 4])

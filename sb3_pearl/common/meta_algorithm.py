@@ -29,6 +29,7 @@ from stable_baselines3.common.type_aliases import MaybeCallback
 from sb3_pearl.common.adaptation import check_finite_observation, check_finite_transition
 from sb3_pearl.common.checks import check_task_counts
 from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
+from sb3_pearl.common.threads import apply_default_num_threads
 from sb3_pearl.envs.task_protocol import Task
 
 if TYPE_CHECKING:
@@ -172,6 +173,7 @@ class MetaAlgorithm(_AlgorithmBase):
                 f"{type(self).__name__}.learn(): total_timesteps must be >= 0 (env steps to train on), got {total_timesteps}"
             )
         self._check_train_tasks()
+        apply_default_num_threads(self.policy)  # the fastest count for these networks, unless the user chose one
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def predict(

@@ -20,11 +20,11 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import polyak_update
 
 from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.divergence import NonFiniteUpdateGuard
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm
+from sb3_pearl.common.networks import polyak_update_foreach
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, check_buffer_tasks, read_replay_buffer
 from sb3_pearl.common.precision import resolve_bf16
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, TrainingPlan
@@ -398,6 +398,15 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         z0 = th.randn(len(tasks), self.latent_dim, device=self.device)  # one prior z per task
         return replay, context, z0
 
+    def _target_pairs(self) -> tuple[list[th.Tensor], list[th.Tensor]]:
+        """The critics' parameters and, in the same order, their target networks' (Polyak-averaged after every step)."""
+        sources: list[th.Tensor] = [*self.critic.parameters()]
+        targets: list[th.Tensor] = [*self.critic_target.parameters()]
+        if self.prior_critic is not None and self.prior_critic_target is not None:
+            sources += self.prior_critic.parameters()
+            targets += self.prior_critic_target.parameters()
+        return sources, targets
+
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
         """
         ``gradient_steps`` steps of Algorithm 1's inner loop, each over ``meta_batch`` tasks.
@@ -411,6 +420,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             optimizers = [*optimizers, self.ent_coef_optimizer]
         self._update_learning_rate(optimizers)
         parameters = [p for optimizer in optimizers for group in optimizer.param_groups for p in group["params"]]
+        critic_params, critic_target_params = self._target_pairs()
         logs: dict[str, list[float]] = {}
         for step in range(gradient_steps):
             replay, context, z0 = self._sample_meta_batch(batch_size)
@@ -429,9 +439,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             self._update_guard.ok()
             for optimizer in optimizers:
                 optimizer.step()
-            polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-            if self.prior_critic is not None and self.prior_critic_target is not None:
-                polyak_update(self.prior_critic.parameters(), self.prior_critic_target.parameters(), self.tau)
+            polyak_update_foreach(critic_params, critic_target_params, self.tau)
             if self.gradient_step_callback is not None:
                 self.gradient_step_callback()
             for key, value in (
@@ -528,6 +536,23 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         networks = ["encoder", "actor", "critic", "critic_target", "prior_critic", "prior_critic_target"]
         unsaved = ["_adapt_context", "_update_guard", "_bf16_enabled", "gradient_step_callback"]
         return [*super()._excluded_save_params(), *networks, *unsaved]
+
+    def set_parameters(
+        self,
+        load_path_or_dict: str | dict[str, th.Tensor],
+        exact_match: bool = True,
+        device: th.device | str = "auto",
+    ) -> None:
+        """
+        SB3's ``set_parameters``; the optimizers then step in the form they were built with (fused Adam), whatever
+        the saved states say (a model saved before the optimizers were fused restores ``fused=None``).
+
+        :param load_path_or_dict: a saved zip or a dict of state dicts
+        :param exact_match: every network must be in the dict
+        :param device: the device to load the parameters on
+        """
+        super().set_parameters(load_path_or_dict, exact_match, device)
+        self.policy.restore_fused_optimizers()
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "encoder.optimizer", "actor.optimizer", "critic.optimizer"]

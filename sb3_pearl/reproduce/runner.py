@@ -27,6 +27,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_pearl  # noqa: F401  (registers the task families)
+from sb3_pearl.common.threads import mark_num_threads_explicit
 from sb3_pearl.evaluation.held_out import held_out_meta_test, meta_test_record, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import json_value
 from sb3_pearl.experiments import get_experiment
@@ -172,7 +173,8 @@ def run_one(
         also called as ``interrupt("meta_test", n)`` before every trajectory of the held-out meta-test)
     :return: the result written
     """
-    th.set_num_threads(1)
+    th.set_num_threads(1)  # one thread per run: the harness runs share the cores
+    mark_num_threads_explicit()
     experiment = get_experiment(experiment_name)
     family, variant = experiment.family(family_name), experiment.variant(variant_name)
     if seed == experiment.eval_seed:

@@ -48,6 +48,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import has_adaptation_api
 from sb3_pearl.common.checks import check_learning_rate
+from sb3_pearl.common.threads import mark_num_threads_explicit, num_threads_flag
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.held_out import model_test_tasks, write_meta_test
@@ -340,6 +341,8 @@ def train(argv: Sequence[str] | None = None) -> None:
     register_algos()
     with exit_on_usage_error():
         flags = parse_project_flags(list(sys.argv[1:] if argv is None else argv))
+        if num_threads_flag(flags.zoo_args) > 0:  # rl_zoo3 sets it; learn() must not replace it with the default
+            mark_num_threads_explicit()
         manager = functools.partial(MetaExperimentManager, resume=flags.resume, budget=flags.budget, command=flags.command)
         with (
             mock.patch.object(sys, "argv", [sys.argv[0], *flags.zoo_args]),

@@ -24,6 +24,7 @@ from stable_baselines3.common.utils import set_random_seed
 
 from sb3_pearl.common.checks import non_negative_int, positive_int
 from sb3_pearl.common.runtime import has_display
+from sb3_pearl.common.threads import apply_default_num_threads, mark_num_threads_explicit
 from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
@@ -189,6 +190,7 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     eval_seed = args.eval_seed if args.eval_seed is not None else (run_eval_seed if args.run else DEFAULT_EVAL_SEED)
     if args.num_threads > 0:
         th.set_num_threads(args.num_threads)
+        mark_num_threads_explicit()
     set_random_seed(args.seed)
     if args.run is None:
         try:
@@ -236,6 +238,7 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
         model = ALGOS[args.algo].load(model_path, device=args.device)
     except ValueError as error:  # a truncated or corrupt zip, or one of another algorithm
         raise UsageError(str(error)) from None
+    apply_default_num_threads(model.policy)  # the fastest count for its networks, unless --num-threads chose one
     check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
     try:
         tasks = model_test_tasks(model, env, args.n_tasks, eval_seed, model_path)
