@@ -289,6 +289,17 @@ def _headline(
     return headline, figures
 
 
+def _decided(results_dir: Path) -> list[str]:
+    """Print the README's headline numbers: Table I's verdicts on the re-measured meta-test (1,000 prior trajectories a
+    seed, ``reproduce remeasure``) by the pre-written rules; return the printed lines."""
+    from sb3_pearl.reproduce.table1_verdicts import decide_family, decision_lines
+
+    lines = decision_lines(decide_family("highway-merge", results_dir))
+    print("\n=== Table I decided (the README's headline: the re-measured meta-test, the rules written before the runs) ===")
+    print("\n".join(lines))
+    return lines
+
+
 def _replay_all(
     found: Mapping[str, Mapping[int, Path]], headline: Mapping[str, Mapping[int, MetaTestResult]], args: argparse.Namespace
 ) -> tuple[dict[str, dict[int, MetaTestResult]], tuple[int, int]]:
@@ -346,6 +357,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         print(f"No committed runs of {', '.join(missing)} under {results_dir} (a checkout has them): no headline, no replay")
     else:
         summary["headline"], summary["figures"] = _headline(found, Path(args.log_folder, "demo"))
+        summary["decided"] = _decided(results_dir)
         summary["replay"], summary["matching"] = _replay_all(found, summary["headline"], args)
     if not args.skip_training:
         summary["training"] = _train(args)

@@ -262,6 +262,9 @@ def test_demo_at_a_small_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, c
     assert [Path(path).name for path in summary["figures"]] == ["headline.png", "headline_violations.png"]
     assert all(Path(path).is_file() for path in summary["figures"])
     assert (logs / "pearlplus" / f"{demo.TRAIN_ENV_ID}_1" / "meta_test.json").is_file()
+    # the README's headline verdicts (re-measured meta-test, pre-written rules), printed as docs/results.md writes them
+    assert "Table I decided" in out and any(line.startswith("- **Safer prior**") for line in summary["decided"])
+    assert all(line in out for line in summary["decided"])
     # the headline table holds the committed numbers of docs/results.md's generated Table I (k = 0, pooled Wilson)
     headline = summary["headline"]
     pooled = {label: demo.pool(list(seeds.values())).summary_at(0) for label, seeds in headline.items()}

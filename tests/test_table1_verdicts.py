@@ -11,7 +11,15 @@ import pytest
 from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE, RULES, PremiseGate
 from sb3_pearl.reproduce.layout import RunKey, run_dir
 from sb3_pearl.reproduce.report import build_report
-from sb3_pearl.reproduce.table1_verdicts import AS_GOOD, INCONCLUSIVE, NOT_TESTED, SAFER, WORSE, decide_family
+from sb3_pearl.reproduce.table1_verdicts import (
+    AS_GOOD,
+    INCONCLUSIVE,
+    NOT_TESTED,
+    SAFER,
+    WORSE,
+    decide_family,
+    decision_lines,
+)
 
 MERGE = ("merge-premise", "pearl-fixed-entropy"), ("merge-table1", "pearlplus-fixed-entropy")
 WALKER = ("pearl-reference", "pearl"), ("walker-table1", "pearlplus")
@@ -107,3 +115,17 @@ def test_walker_gate_failure_worse_return_and_the_extension_rule(tmp_path: Path)
     decision = decide_family("walker2d-vel-long", other)
     assert decision.gate == "holds" and decision.prior_verdict == INCONCLUSIVE and decision.adapted_verdict == WORSE
     assert any("extend to seeds (0, 1, 2, 3, 4, 5)" in note for note in decision.notes)
+
+
+def test_the_adapted_policys_violations_are_reported_beside_the_rules(tmp_path: Path) -> None:
+    # k = 5 falls: PEARL 2% and 4%, PEARL+ 22% and 26% -> differences +20, +22 points: mean +21, sd 1.414,
+    # t(0.975, 1) = 12.706 -> half-width 12.706 * 1.414 / sqrt(2) = 12.7: [+8.3, +33.7]. The rules judge the return
+    # only, so the return verdict stays "as good" (equal returns) while the line shows the worse adapted violations.
+    (owner, name), (plus_owner, plus) = WALKER
+    for seed, (pearl_k5, plus_k5) in enumerate(((0.02, 0.22), (0.04, 0.26))):
+        write_run(tmp_path, owner, "walker2d-vel-long", name, seed, summary(0.8, pearl_k5, 100.0))
+        write_run(tmp_path, plus_owner, "walker2d-vel-long", plus, seed, summary(0.0, plus_k5, 100.0))
+    decision = decide_family("walker2d-vel-long", tmp_path)
+    assert decision.adapted_verdict == AS_GOOD
+    line = next(line for line in decision_lines(decision) if line.startswith("- Adapted policy's violations"))
+    assert "rate 3.0% (PEARL) and 24.0% (PEARL+), paired difference +21.0 [+8.3, +33.7] points" in line

@@ -264,34 +264,58 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
                     cell += f" (old {_pct(run.own_summary[0]['violation_rate'])})"
                 cells.append(cell)
             out.append(f"| {seed} | " + " | ".join(cells) + " |")
-        k0, k5 = decision.gate_values
-        shift = {
-            n: [r.shift_k0_rate for r in decision.runs[n].values() if r.shift_k0_rate is not None] for n in decision.variants
-        }
-        velocity = {
-            n: [r.velocity_error for r in decision.runs[n].values() if r.velocity_error is not None] for n in decision.variants
-        }
-        out += [
-            "",
-            f"- **Premise gate** ({rules.gates[decision.family].describe()}): **{decision.gate}** (PEARL k = 0 "
-            f"{_pct(k0)}%, k = 5 {_pct(k5)}%).",
-            f"- **Safer prior**: paired k = 0 difference {_interval(decision.prior_interval, 100)} points: "
-            f"**{decision.prior_verdict}**.",
-            f"- **Adapted as good**: paired k = 5 return difference {_interval(decision.adapted_interval, 1, 2)} against "
-            f"the margin -{_num(decision.adapted_margin)}: **{decision.adapted_verdict}**.",
-        ]
-        if any(shift.values()):
-            out.append(
-                "- Shift column (k = 0 violation rate on the shifted tasks, mean over seeds): "
-                + ", ".join(f"{experiment.variant(n).label} {_pct(sum(v) / len(v))}%" for n, v in shift.items() if v)
-                + "."
-            )
-        if any(velocity.values()):
-            out.append(
-                "- Velocity error on training tasks (k >= 1, m/s; the family's 0.3 bar, reported, not a gate): "
-                + ", ".join(f"{experiment.variant(n).label} {sum(v) / len(v):.2f}" for n, v in velocity.items() if v)
-                + "."
-            )
-        out += [f"- {note}." for note in decision.notes]
-        out.append("")
+        out += ["", *decision_lines(decision, rules), ""]
+    return out
+
+
+def decision_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list[str]:
+    """
+    The verdicts of one family as markdown bullets: the premise gate, "safer prior", "adapted as good" (each with the
+    numbers it rests on), then what is reported beside the rules (the adapted policy's violations, the shift column,
+    the velocity error) and the notes (provisional, extension).
+
+    :param decision: the family's decision
+    :param rules: the rules it was decided by
+    :return: the lines
+    """
+    experiment = get_experiment(decision.experiment)
+    k0, k5 = decision.gate_values
+    shift = {n: [r.shift_k0_rate for r in decision.runs[n].values() if r.shift_k0_rate is not None] for n in decision.variants}
+    velocity = {
+        n: [r.velocity_error for r in decision.runs[n].values() if r.velocity_error is not None] for n in decision.variants
+    }
+    out = [
+        f"- **Premise gate** ({rules.gates[decision.family].describe()}): **{decision.gate}** (PEARL k = 0 "
+        f"{_pct(k0)}%, k = 5 {_pct(k5)}%).",
+        f"- **Safer prior**: paired k = 0 difference {_interval(decision.prior_interval, 100)} points: "
+        f"**{decision.prior_verdict}**.",
+        f"- **Adapted as good**: paired k = 5 return difference {_interval(decision.adapted_interval, 1, 2)} against "
+        f"the margin -{_num(decision.adapted_margin)}: **{decision.adapted_verdict}**.",
+    ]
+    reference, variant = decision.variants
+    if len(decision.paired_seeds) >= 2:  # reported beside the rules, which judge the adapted policy by its return
+        adapted_k = rules.adapted_k
+        violations = paired_differences(
+            {s: decision.runs[variant][s].summary[adapted_k]["violation_rate"] for s in decision.paired_seeds},
+            {s: decision.runs[reference][s].summary[adapted_k]["violation_rate"] for s in decision.paired_seeds},
+        )
+        out.append(
+            f"- Adapted policy's violations (reported, not a rule): k = {adapted_k} rate "
+            f"{_pct(_mean(decision.runs[reference], adapted_k, 'violation_rate'))}% (PEARL) and "
+            f"{_pct(_mean(decision.runs[variant], adapted_k, 'violation_rate'))}% (PEARL+), paired difference "
+            f"{_interval(t_interval(list(violations.values()), rules.confidence), 100)} points."
+        )
+    if any(shift.values()):
+        out.append(
+            "- Shift column (k = 0 violation rate on the shifted tasks, mean over seeds): "
+            + ", ".join(f"{experiment.variant(n).label} {_pct(sum(v) / len(v))}%" for n, v in shift.items() if v)
+            + "."
+        )
+    if any(velocity.values()):
+        out.append(
+            "- Velocity error on training tasks (k >= 1, m/s; the family's 0.3 bar, reported, not a gate): "
+            + ", ".join(f"{experiment.variant(n).label} {sum(v) / len(v):.2f}" for n, v in velocity.items() if v)
+            + "."
+        )
+    out += [f"- {note}." for note in decision.notes]
     return out
