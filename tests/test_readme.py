@@ -275,6 +275,24 @@ def test_the_readme_runs_its_quick_start_and_every_pretrained_model() -> None:
         assert (ROOT / run / "model.zip").is_file() and (ROOT / run / "result.json").is_file(), run
 
 
+def test_the_thread_default_is_said_where_a_user_looks() -> None:
+    """The README's quick start and cli.md say the thread rule of sb3_pearl.common.threads, with its numbers, and no
+    documented train.py / enjoy.py command sets --num-threads (the default is the fast count: issue 37)."""
+    from sb3_pearl.common.threads import MAX_THREADS, WIDE_LAYER
+
+    quick_start = _section(README.read_text(), "Quick start")
+    for where, text in (("README's quick start", quick_start), ("docs/cli.md", (ROOT / "docs" / "cli.md").read_text())):
+        flat = " ".join(text.split())
+        assert f"one torch thread for networks narrower than {WIDE_LAYER} units" in flat or (
+            f"one thread for networks narrower than {WIDE_LAYER} units" in flat
+        ), where
+        assert f"up to {MAX_THREADS}" in flat and "OMP_NUM_THREADS" in flat, where
+    for page in COMMAND_PAGES:
+        for command in page_commands(page):
+            if command.tool in ("train", "enjoy"):
+                assert "--num-threads" not in command.argv, f"{page}:{command.line}: the default already picks the count"
+
+
 # ----------------------------------------------------------------------------------------------
 # make demo
 # ----------------------------------------------------------------------------------------------
