@@ -275,6 +275,21 @@ def test_the_readme_runs_its_quick_start_and_every_pretrained_model() -> None:
         assert (ROOT / run / "model.zip").is_file() and (ROOT / run / "result.json").is_file(), run
 
 
+def test_the_clone_weight_note_holds() -> None:
+    """The README's lighter clone brings back the headline models ``make demo`` replays, and no finished run keeps its
+    checkpoint in the tree (the runner deletes it once ``result.json`` is written: only unfinished runs carry one)."""
+    note = README.read_text().split("**What a clone weighs.**", 1)[1].split("\n## ", 1)[0]
+    added = re.findall(r"^git sparse-checkout add (.+?)\s+#", note, flags=re.M)
+    assert len(added) == 1, "the note lost its sparse-checkout line"
+    folders = {folder.strip("/") for folder in added[0].split()}
+    assert folders == {f"results/{variant}" for variant in demo.HEADLINE.values()}
+    for folder in folders:
+        assert list((ROOT / folder).glob("seed*/model.zip")), folder
+    for checkpoint in (ROOT / "results").rglob("checkpoint"):
+        if checkpoint.is_dir():
+            assert not (checkpoint.parent / "result.json").exists(), f"{checkpoint}: a finished run kept its checkpoint"
+
+
 def test_the_thread_default_is_said_where_a_user_looks() -> None:
     """The README's quick start and cli.md say the thread rule of sb3_pearl.common.threads, with its numbers, and no
     documented train.py / enjoy.py command sets --num-threads (the default is the fast count: issue 37)."""
