@@ -21,6 +21,7 @@ import yaml
 
 from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.evaluation.figures import main as plots_main
+from sb3_pearl.evaluation.statistics import format_prior_posterior_table, summarize
 from sb3_pearl.zoo import constructor_kwargs, register_algos
 from sb3_pearl.zoo import enjoy as enjoy_main
 from sb3_pearl.zoo import train as train_main
@@ -139,8 +140,11 @@ def test_enjoy_prints_prior_and_posterior(trained: Path, tmp_path: Path) -> None
     )
     out = proc.stdout
     assert out.count("Task ") == 2
-    assert out.count(" prior ") == 2 and out.count(" posterior ") == 4
-    assert "Summary over tasks" in out and "viol. rate" in out
+    assert out.count("  prior ") == 2 and out.count("  posterior ") == 4  # the rows of the task tables
+    assert "Summary over tasks: the prior (k = 0) and the posterior after k = 1..2, 2 trajectories each" in out
+    header = next(line for line in out.splitlines() if line.strip().startswith("k = 0 (prior)"))  # the ks side by side
+    assert header.split() == ["k", "=", "0", "(prior)", "k", "=", "1", "k", "=", "2"]
+    assert "violations, % [95%]" in out and "return, mean +- std" in out
     assert plot.is_file() and (tmp_path / "enjoy_violations.png").is_file()
     best = enjoy("--algo", "pearlplus", "--env", ENV_ID, "-f", str(trained), "--no-render", "--load-best", "--n-adapt", "1")
     assert "best_model.zip" in best.stdout
@@ -224,9 +228,11 @@ def test_enjoy_replays_a_committed_harness_run(tmp_path: Path, capsys: pytest.Ca
     args = ["--env", ENV_ID, "--run", str(folder), "--no-render", "--n-tasks", "2", "--n-adapt", "2"]
     out = run("enjoy.py", "--algo", "pearlplus", *args).stdout
     assert f"eval seed {result['eval_seed']}" in out
-    for row in result["meta_test"]["rows"]:
-        if row["task"] < 2 and row["repeat"] == 0 and row["k"] <= 2:
-            assert f"{row['return']:>10.2f}" in out  # the committed number, from model.zip alone
+    replayed = [row for row in result["meta_test"]["rows"] if row["task"] < 2 and row["repeat"] == 0 and row["k"] <= 2]
+    for row in replayed:
+        assert f"{row['return']:>10.2f}" in out  # the committed number, from model.zip alone
+    # after the replay, one table: the prior (k = 0) and the posteriors (k = 1, 2) side by side, the committed numbers
+    assert format_prior_posterior_table(summarize(replayed)) in out
     from sb3_pearl.zoo import enjoy  # the refusals in-process: they come before any model or env is built
 
     for argv, message in (

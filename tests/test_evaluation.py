@@ -19,7 +19,14 @@ from sb3_pearl.envs.task_protocol import MetaTaskEnv
 from sb3_pearl.evaluation.callbacks import MetaTestCallback
 from sb3_pearl.evaluation.held_out import held_out_meta_test, held_out_tasks, meta_test_record
 from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult, json_value, meta_test
-from sb3_pearl.evaluation.statistics import SUMMARY_COLUMNS, cvar, summarize, wilson_interval
+from sb3_pearl.evaluation.statistics import (
+    PRIOR_POSTERIOR_ROWS,
+    SUMMARY_COLUMNS,
+    cvar,
+    format_prior_posterior_table,
+    summarize,
+    wilson_interval,
+)
 
 HORIZON = 3
 UNSAFE_ACTION = 3
@@ -181,6 +188,24 @@ def test_statistics() -> None:
         {"task": 1, "repeat": 0, "k": 1, "return": 0.0, "violated": True},
     ]
     assert [e["cum_violations"] for e in summarize(rows)] == [0.5, 1.5]
+
+
+def test_prior_posterior_table_puts_the_ks_side_by_side() -> None:
+    """enjoy.py's summary: one column per k (the prior first), the summary's numbers, wrapped after max_columns."""
+    rows = [
+        {"task": task, "repeat": 0, "k": k, "return": float(-10 * (task + 1) + k), "violated": k == 0 and task == 0}
+        for task in range(2)
+        for k in range(8)
+    ]
+    table = format_prior_posterior_table(summarize(rows))
+    first, second = table.split("\n\n")  # k = 0..5, then k = 6, 7
+    lines = first.splitlines()
+    assert lines[0].split("  ")[-1].strip() == "k = 5" and lines[0].strip().startswith("k = 0 (prior)")
+    assert [line[:22].strip() for line in lines[1:]] == list(PRIOR_POSTERIOR_ROWS)
+    assert lines[1][22:].split()[:3] == ["-15.0", "+-", "5.0"]  # k = 0: returns -10 and -20
+    assert lines[3][22:].split()[:6] == ["50", "[9,", "91]", "0", "[0,", "66]"]  # k = 0: 1 of 2 violated; k = 1: none
+    assert second.splitlines()[0].split() == ["k", "=", "6", "k", "=", "7"]
+    assert len(format_prior_posterior_table(summarize(rows), max_columns=8).split("\n\n")) == 1
 
 
 def test_csv_and_json_schema(tmp_path: Any) -> None:

@@ -1,5 +1,6 @@
 """The documented commands run as written (issue 37): the README's Python examples, every command of the README,
-docs/README.md and docs/cli.md at a smoke budget, and ``make demo`` with its own defaults.
+docs/README.md, docs/cli.md and the algorithm pages at a smoke budget, the algorithm pages' examples and parameter
+lists, and ``make demo`` with its own defaults.
 
 **The convention for command blocks** (```` ```bash ```` blocks of the pages in :data:`COMMAND_PAGES`): every command
 runs in the fast suite, in the page's order in one temporary folder per page (so an ``enjoy.py`` line replays the
@@ -12,6 +13,7 @@ target; ``make demo`` runs in :func:`test_make_demo_defaults_are_runnable` and :
 
 from __future__ import annotations
 
+import ast
 import os
 import re
 import shlex
@@ -28,7 +30,9 @@ from tests.conftest import TINY_ZOO_PARAMS
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-COMMAND_PAGES = ("README.md", "docs/README.md", "docs/cli.md")
+ALGORITHM_PAGES = ("docs/pearl.md", "docs/finetune.md", "docs/maml.md")
+COMMAND_PAGES = ("README.md", "docs/README.md", "docs/cli.md", *ALGORITHM_PAGES)
+ALGORITHM_SECTIONS = ["Example", "Results", "How to replicate", "Parameters", "Notes"]
 PARSE_ONLY = re.compile(r"<!--\s*commands:\s*parse-only\b")
 SMOKE_STEPS = "300"
 SMOKE_PARAMS = [*TINY_ZOO_PARAMS[:-1], "meta_test:dict(n_adapt=1, n_tasks=2)"]
@@ -52,6 +56,47 @@ def test_readme_python_examples_run(shrink: bool, tmp_path: Path, capsys: pytest
     assert (tmp_path / "pearlplus_safepoint.zip").exists()
     printed = capsys.readouterr().out
     assert [line.split()[0] for line in printed.splitlines() if line.startswith("k=")] == ["k=0", "k=1", "k=2"]
+
+
+# ----------------------------------------------------------------------------------------------
+# The algorithm pages: sb3-contrib's shape, their examples, their parameter lists
+# ----------------------------------------------------------------------------------------------
+def _section(text: str, title: str) -> str:
+    """The text of a page's ``## title`` section."""
+    return text.split(f"\n## {title}\n", 1)[1].split("\n## ", 1)[0]
+
+
+@pytest.mark.parametrize("page", ALGORITHM_PAGES)
+def test_algorithm_page_examples_run(page: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each algorithm page opens in sb3-contrib's order (what it is with its arXiv paper, Example, Results, How to
+    replicate, Parameters, then the notes) and its Example runs, the training budget shrunk to 300 env steps."""
+    text = (ROOT / page).read_text()
+    titles = re.findall(r"^## (.+)$", text, flags=re.M)
+    assert titles[: len(ALGORITHM_SECTIONS)] == ALGORITHM_SECTIONS, titles
+    assert re.search(r"arXiv:\d{4}\.\d{5}", text.split("\n## ", 1)[0]), "the opening paragraph names no arXiv paper"
+    blocks = re.findall(r"```python\n(.*?)```", _section(text, "Example"), flags=re.S)
+    assert len(blocks) == 1 and len(re.findall(r"model\.learn\([\d_]+\)", blocks[0])) == 1, page
+    monkeypatch.chdir(tmp_path)  # the examples save models in the working directory
+    exec(compile(re.sub(r"model\.learn\([\d_]+\)", "model.learn(300)", blocks[0]), page, "exec"), {"__name__": "page"})
+
+
+@pytest.mark.parametrize("page", ALGORITHM_PAGES)
+def test_algorithm_page_parameters_are_the_constructors(page: str) -> None:
+    """The Parameters section's ``Class(...)`` signatures name only real parameters, with their real defaults."""
+    import inspect
+
+    import sb3_pearl
+
+    section = _section((ROOT / page).read_text(), "Parameters")
+    signatures = re.findall(r"`(PEARL|PEARLPlus|FineTune|MAML)\((.*?)\)`", section, flags=re.S)
+    assert signatures, f"{page}: no constructor signature in its Parameters section"
+    for name, arguments in signatures:
+        parameters = inspect.signature(getattr(sb3_pearl, name).__init__).parameters
+        documented = re.findall(r"(\w+)=([^,]+)", arguments.replace("\n", " "))
+        assert documented, name
+        for key, value in documented:
+            assert key in parameters, f"{page}: {name} has no parameter {key}"
+            assert ast.literal_eval(value.strip()) == parameters[key].default, f"{page}: {name}({key}=...)"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -162,8 +207,9 @@ def parse(command: Command) -> None:
     if command.tool == "train":
         parse_train(command.argv)
     elif command.tool == "enjoy":
-        from sb3_pearl.zoo import enjoy_parser
+        from sb3_pearl.zoo import enjoy_parser, register_algos
 
+        register_algos()  # --algo's choices: rl_zoo3's ALGOS with the project's (train.py's parse registers them too)
         enjoy_parser().parse_args(command.argv)
     elif command.tool == "reproduce":
         from sb3_pearl.reproduce.cli import build_parser
@@ -227,6 +273,39 @@ def test_the_readme_runs_its_quick_start_and_every_pretrained_model() -> None:
         assert any(run.startswith(f"results/{name}/seed") for run in runs), f"no enjoy.py --run line for {name}"
     for run in runs:
         assert (ROOT / run / "model.zip").is_file() and (ROOT / run / "result.json").is_file(), run
+
+
+def test_the_clone_weight_note_holds() -> None:
+    """The README's lighter clone brings back the headline models ``make demo`` replays, and no finished run keeps its
+    checkpoint in the tree (the runner deletes it once ``result.json`` is written: only unfinished runs carry one)."""
+    note = README.read_text().split("**What a clone weighs.**", 1)[1].split("\n## ", 1)[0]
+    added = re.findall(r"^git sparse-checkout add (.+?)\s+#", note, flags=re.M)
+    assert len(added) == 1, "the note lost its sparse-checkout line"
+    folders = {folder.strip("/") for folder in added[0].split()}
+    assert folders == {f"results/{variant}" for variant in demo.HEADLINE.values()}
+    for folder in folders:
+        assert list((ROOT / folder).glob("seed*/model.zip")), folder
+    for checkpoint in (ROOT / "results").rglob("checkpoint"):
+        if checkpoint.is_dir():
+            assert not (checkpoint.parent / "result.json").exists(), f"{checkpoint}: a finished run kept its checkpoint"
+
+
+def test_the_thread_default_is_said_where_a_user_looks() -> None:
+    """The README's quick start and cli.md say the thread rule of sb3_pearl.common.threads, with its numbers, and no
+    documented train.py / enjoy.py command sets --num-threads (the default is the fast count: issue 37)."""
+    from sb3_pearl.common.threads import MAX_THREADS, WIDE_LAYER
+
+    quick_start = _section(README.read_text(), "Quick start")
+    for where, text in (("README's quick start", quick_start), ("docs/cli.md", (ROOT / "docs" / "cli.md").read_text())):
+        flat = " ".join(text.split())
+        assert f"one torch thread for networks narrower than {WIDE_LAYER} units" in flat or (
+            f"one thread for networks narrower than {WIDE_LAYER} units" in flat
+        ), where
+        assert f"up to {MAX_THREADS}" in flat and "OMP_NUM_THREADS" in flat, where
+    for page in COMMAND_PAGES:
+        for command in page_commands(page):
+            if command.tool in ("train", "enjoy"):
+                assert "--num-threads" not in command.argv, f"{page}:{command.line}: the default already picks the count"
 
 
 # ----------------------------------------------------------------------------------------------

@@ -243,9 +243,57 @@ def test_run_refuses_a_result_of_another_budget(tmp_path: Path, capsys: pytest.C
 def test_run_dry_run_lists_the_plan(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from sb3_pearl.reproduce.cli import main
 
-    assert main(["run", "table2", "--budget", "cpu", "--seeds", "0-1", "--family", "highway-merge", "--dry-run"]) == 0
+    args = ["run", "table2", "--budget", "cpu", "--seeds", "0-1", "--family", "highway-merge", "--dry-run"]
+    assert main([*args, "--results-dir", str(tmp_path)]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 4 * 2 and lines[0].startswith("table2 highway-merge pearl seed0: pearl, ")
+    assert len(lines) == 4 * 2 + 1 and lines[0].startswith("table2 highway-merge pearl seed0: starts: pearl, ")
+    assert lines[-1].startswith("Dry run, nothing started: 0 done (skipped), 0 would resume from a checkpoint, 8 would start")
+    assert not any(tmp_path.iterdir())
+
+
+def test_run_dry_run_says_what_is_done_resumed_and_started(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A finished run is listed as skipped, one with a checkpoint as resumed, the others as started (issue 37: the dry
+    run listed finished runs as if they would run); --force starts all from zero; nothing on disk changes."""
+    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+    from sb3_pearl.reproduce.cli import main
+    from sb3_pearl.reproduce.layout import write_json_atomic
+
+    done, partway = run_folder(tmp_path, "alpha-0.1"), tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed1"
+    done.mkdir(parents=True)
+    keys = {"experiment": "safe-point", "family": "safe-point", "variant": "alpha-0.1", "seed": 0, "budget_preset": "smoke"}
+    summary = [{"k": 0, "n": 1, "return_mean": -1.0, "violation_rate": 0.0}]
+    times = {"cpu": {"cpu_time_s": 3600.0}, "wall_time_s": {"total": 3600.0, "train": 3000.0}}
+    write_json_atomic(done / "result.json", {**keys, "meta_test": {"summary": summary}, **times})
+    (partway / "checkpoint").mkdir(parents=True)
+    (partway / "checkpoint" / "model_240.zip").write_bytes(b"")
+    state = {"phase": "train", "files": {"model": "model_240.zip"}, "num_timesteps": 240, "phases": {},
+             "spent": {"cpu_s": 24.0, "wall_s": 30.0}}  # fmt: skip
+    RunCheckpoint(partway).write_state(state)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    args = ["run", "safe-point", "--budget", "smoke", "--seeds", "0-2", "--family", "safe-point", "--variants", "alpha-0.1"]
+    args.append("--results-dir")
+    assert main([*args, str(tmp_path), "--dry-run"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    label = "safe-point safe-point alpha-0.1 seed"
+    assert lines[0] == f"{label}0: done, skipped ({done / 'result.json'} exists; --force reruns it)"
+    assert lines[1].startswith("safe-point safe-point alpha-0.1 seed1: resumes from its checkpoint (train 240/400 steps")
+    assert lines[2].startswith("safe-point safe-point alpha-0.1 seed2: starts: pearlplus, 400 steps, meta-test ")
+    # the missing run at the finished one's CPU time (1 h), the part-way one at its own rate (0.1 s a step, 160 steps
+    # left) plus the finished one's evaluation (600 s): `reproduce status`'s estimate
+    assert lines[3] == (
+        "Dry run, nothing started: 1 done (skipped), 1 would resume from a checkpoint, 1 would start; "
+        f"CPU time left {(3600 + 16 + 600) / 3600:.2f} h (one core)"
+    )
+    assert main([*args, str(tmp_path), "--dry-run", "--force"]) == 0
+    forced = capsys.readouterr().out.strip().splitlines()
+    assert forced[0].startswith("safe-point safe-point alpha-0.1 seed0: starts from zero (--force replaces its result.json)")
+    assert forced[1].startswith("safe-point safe-point alpha-0.1 seed1: starts from zero (--force drops its checkpoint)")
+    assert forced[-1] == "Dry run, nothing started: 0 done (skipped), 0 would resume from a checkpoint, 3 would start"
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # a dry run touches nothing
+    # a finished run of another preset: the dry run refuses it as the run would
+    write_json_atomic(done / "result.json", {**keys, "budget_preset": "cpu", "meta_test": {"summary": summary}})
+    assert main([*args, str(tmp_path), "--dry-run"]) == 2
+    assert "was run with budget preset 'cpu', not 'smoke'" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------------------------

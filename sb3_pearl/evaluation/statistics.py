@@ -127,4 +127,51 @@ def format_summary_table(entries: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["SUMMARY_COLUMNS", "WILSON_Z95", "cvar", "format_summary_table", "summarize", "wilson_interval"]
+def _prior_posterior_cells(entry: dict[str, Any]) -> list[str]:
+    """The cells of one trajectory k in :func:`format_prior_posterior_table`, in the order of its row labels."""
+    rate, low, high = (100 * entry[key] for key in ("violation_rate", "violation_ci_low", "violation_ci_high"))
+    return [
+        f"{entry['return_mean']:.1f} +- {entry['return_std']:.1f}",
+        f"{entry['return_cvar10']:.1f}",
+        f"{rate:.0f} [{low:.0f}, {high:.0f}]",
+        f"{entry['cum_violations']:.2f}",
+    ]
+
+
+PRIOR_POSTERIOR_ROWS = ("return, mean +- std", "return, CVaR 10%", "violations, % [95%]", "cum. violations")
+
+
+def format_prior_posterior_table(entries: Sequence[dict[str, Any]], max_columns: int = 6) -> str:
+    """
+    Summary entries side by side, one column per trajectory k: the prior (k = 0) and the posterior after k = 1, 2, ...
+    trajectories. Rows (:data:`PRIOR_POSTERIOR_ROWS`): the return (mean +- std over the trajectories at k), its
+    CVaR_10% over tasks, the violation rate (%, with its 95% Wilson interval) and the cumulative violations up to k.
+    More than ``max_columns`` trajectories wrap into blocks of columns.
+
+    :param entries: summary dicts (:func:`summarize`), in increasing k
+    :param max_columns: trajectories per block of columns (at least 1)
+    :return: the table
+    """
+    label_width, width, step = 22, 17, max(1, max_columns)
+    blocks = []
+    for start in range(0, len(entries), step):
+        block = entries[start : start + step]
+        titles = [f"k = {entry['k']}" + (" (prior)" if entry["k"] == 0 else "") for entry in block]
+        cells = [_prior_posterior_cells(entry) for entry in block]
+        lines = [" " * label_width + "".join(f"{title:>{width}}" for title in titles)]
+        for row, label in enumerate(PRIOR_POSTERIOR_ROWS):
+            lines.append(f"{label:<{label_width}}" + "".join(f"{column[row]:>{width}}" for column in cells))
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
+
+
+__all__ = [
+    "PRIOR_POSTERIOR_ROWS",
+    "SUMMARY_COLUMNS",
+    "WILSON_Z95",
+    "cvar",
+    "format_prior_posterior_table",
+    "format_summary_table",
+    "summarize",
+    "wilson_interval",
+]

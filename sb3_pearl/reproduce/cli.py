@@ -20,7 +20,7 @@ from typing import Any
 
 from sb3_pearl.common.checks import output_folder_problem, positive_int
 from sb3_pearl.experiments import EXPERIMENTS, get_experiment
-from sb3_pearl.experiments.budgets import PRESETS, load_budget
+from sb3_pearl.experiments.budgets import PRESETS
 from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.reproduce.layout import parse_seeds
 
@@ -181,11 +181,11 @@ def _run(args: argparse.Namespace) -> int:
         check_results_dir(args.results_dir)
     if len(planned) > CONFIRM_RUNS and not args.yes and not args.dry_run:
         raise ValueError(f"{len(planned)} runs planned (more than {CONFIRM_RUNS}): check --seeds, then add --yes to confirm")
-    if args.dry_run:
-        for key in planned:
-            variant = experiment.variant(key.variant)
-            entry = load_budget(budget, experiment.family(key.family).budget_name, variant.algo)
-            print(f"{key.label()}: {variant.algo}, {entry['n_timesteps']} steps, meta-test {entry['meta_test']}")
+    if args.dry_run:  # what the run would do with each planned run: skip it (done), resume it or start it
+        from sb3_pearl.reproduce.status import format_dry_run, run_status
+
+        rows = run_status(experiment, budget, seeds, args.results_dir, args.family, variants)  # held variants: out already
+        print(format_dry_run(rows, experiment, budget, args.results_dir, args.force))
         return 0
     common: dict[str, Any] = dict(families=args.family, variants=variants, force=args.force)
     summary: RunSummary

@@ -1,4 +1,5 @@
-"""``reproduce status``: which planned runs are finished, resumable (a checkpoint) or missing, and the CPU time left.
+"""``reproduce status``: which planned runs are finished, resumable (a checkpoint) or missing, and the CPU time left;
+``reproduce run --dry-run``: what the run would do with each (:func:`format_dry_run`).
 
 CPU time still needed, per run: a resumable run in training, its CPU seconds per env step times the steps left, plus
 the evaluation time of its finished siblings; a run in evaluation, that evaluation time; a missing run, the mean CPU
@@ -27,6 +28,7 @@ from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.reproduce.checkpoint import RunCheckpoint
 from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
+from sb3_pearl.reproduce.runner import existing_result
 from sb3_pearl.reproduce.scheduler import plan_runs
 from sb3_pearl.reproduce.stats import mean_finite
 
@@ -163,11 +165,78 @@ def run_status(
     return rows
 
 
+def _hours(seconds: float) -> str:
+    return "unknown" if not math.isfinite(seconds) else f"{seconds / 3600:.2f} h"
+
+
+def _cpu_left(rows: Sequence[RunStatus]) -> str:
+    """The CPU time the resumable and missing runs still need, as ``status`` and ``run --dry-run`` say it."""
+    left = [r.cpu_left_s for r in rows if r.status in ("resumable", "missing")]
+    unknown = sum(not math.isfinite(v) for v in left)
+    total = sum(v for v in left if math.isfinite(v))
+    partial = sum(r.training_only for r in rows)
+    return (
+        f"CPU time left {'at least ' if partial else ''}{_hours(total)} (one core)"
+        + (f", plus {unknown} run(s) of unknown cost" if unknown else "")
+        + (f"; {partial} estimate(s) count the training only" if partial else "")
+    )
+
+
+def format_dry_run(
+    rows: Sequence[RunStatus],
+    experiment: Experiment,
+    budget_preset: str,
+    results_dir: str | os.PathLike[str],
+    force: bool = False,
+) -> str:
+    """
+    What ``reproduce run --dry-run`` prints: for every planned run what the same command without ``--dry-run`` would do
+    with it (the rule of :func:`~sb3_pearl.reproduce.scheduler.select_pending` and of the runner's resume): a finished
+    run (its ``result.json`` present) is skipped, a run with a checkpoint resumes from it, any other starts; with
+    ``force`` every run starts from zero. Then the counts and the CPU time left (:func:`run_status`'s estimate).
+
+    :param rows: :func:`run_status` of the planned runs (the selection rule already applied: no held variant)
+    :param experiment: the experiment
+    :param budget_preset: the budget preset
+    :param results_dir: root of the results layout
+    :param force: ``--force``
+    :return: one line per run, then the totals
+    :raises ValueError: a finished run of another budget preset, as the run itself would refuse it (without ``force``)
+    """
+    lines: list[str] = []
+    counts = {"skip": 0, "resume": 0, "start": 0}
+    for row in rows:
+        key = row.key
+        variant = experiment.variant(key.variant)
+        entry = load_budget(budget_preset, experiment.family(key.family).budget_name, variant.algo)
+        plan = f"{variant.algo}, {entry['n_timesteps']} steps, meta-test {entry['meta_test']}"
+        result = run_dir(results_dir, key) / RESULT_FILE
+        if row.status == "finished" and not force:
+            existing_result(result.parent, budget_preset)  # another preset's result: the run's own error
+            counts["skip"] += 1
+            lines.append(f"{key.label()}: done, skipped ({result} exists; --force reruns it)")
+        elif row.status == "resumable" and not force:
+            counts["resume"] += 1
+            lines.append(f"{key.label()}: resumes from its checkpoint ({row.progress}): {plan}")
+        else:
+            counts["start"] += 1
+            why = ""
+            if force and row.status == "finished":
+                why = " from zero (--force replaces its result.json)"
+            elif force and row.status == "resumable":
+                why = " from zero (--force drops its checkpoint)"
+            lines.append(f"{key.label()}: starts{why}: {plan}")
+    total = (
+        f"Dry run, nothing started: {counts['skip']} done (skipped), {counts['resume']} would resume from a checkpoint, "
+        f"{counts['start']} would start"
+    )
+    lines.append(total + ("" if force else f"; {_cpu_left(rows)}"))
+    return "\n".join(lines)
+
+
 def format_status(rows: Sequence[RunStatus]) -> str:
     """The table ``reproduce status`` prints, with the totals."""
-
-    def hours(seconds: float) -> str:
-        return "unknown" if not math.isfinite(seconds) else f"{seconds / 3600:.2f} h"
+    hours = _hours
 
     def megabytes(size: int) -> str:
         return f"{size / 1e6:.1f} MB" if size else ""
@@ -180,16 +249,8 @@ def format_status(rows: Sequence[RunStatus]) -> str:
             f" {megabytes(row.checkpoint_bytes):>11}"
         )
     counts = {s: sum(r.status == s for r in rows) for s in ("finished", "resumable", "missing", "awaiting")}
-    left = [r.cpu_left_s for r in rows if r.status in ("resumable", "missing")]
-    unknown = sum(not math.isfinite(v) for v in left)
-    total = sum(v for v in left if math.isfinite(v))
-    partial = sum(r.training_only for r in rows)
-    lines.append(
-        f"{counts['finished']} finished, {counts['resumable']} resumable, {counts['missing']} missing; "
-        f"CPU time left {'at least ' if partial else ''}{hours(total)} (one core)"
-        + (f", plus {unknown} run(s) of unknown cost" if unknown else "")
-        + (f"; {partial} estimate(s) count the training only" if partial else "")
-    )
+    finished, resumable, missing = counts["finished"], counts["resumable"], counts["missing"]
+    lines.append(f"{finished} finished, {resumable} resumable, {missing} missing; {_cpu_left(rows)}")
     checkpoints = [r.checkpoint_bytes for r in rows if r.checkpoint_bytes]
     if checkpoints:
         lines.append(

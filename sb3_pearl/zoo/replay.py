@@ -1,7 +1,8 @@
 """``enjoy.py``: prior and posterior rollouts of a trained model, found like rl_zoo3's enjoy finds it.
 
 The prior trajectory (k = 0) of each test task, then posterior trajectories after adapting on the
-earlier ones (k = 1..``--n-adapt``), rendered, recorded as videos or only printed and plotted.
+earlier ones (k = 1..``--n-adapt``), rendered, recorded as videos or only printed and plotted. After the rollouts, one
+table puts the prior and the posterior side by side (:func:`~sb3_pearl.evaluation.statistics.format_prior_posterior_table`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from sb3_pearl.common.runtime import has_display
 from sb3_pearl.common.threads import apply_default_num_threads, mark_num_threads_explicit
 from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult
+from sb3_pearl.evaluation.statistics import format_prior_posterior_table
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
 from sb3_pearl.zoo.registry import register_algos
 from sb3_pearl.zoo.safe_config import UnsafeConfigError, get_saved_hyperparams, load_run_yaml
@@ -274,8 +276,10 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
         for repeat in range(args.n_repeats):
             print(f"\nTask {task_index} (repeat {repeat}): {json.dumps(task)}")
             print(format_task_table(result, task_index, repeat))
-    print("\nSummary over tasks")
-    print(result.format_summary())
+    n_trajectories = len(result.tasks) * args.n_repeats
+    columns = f"the prior (k = 0) and the posterior after k = 1..{args.n_adapt}" if args.n_adapt else "the prior (k = 0)"
+    print(f"\nSummary over tasks: {columns}, {n_trajectories} trajectories each")
+    print(format_prior_posterior_table(result.summary))
     if args.video_folder is not None:
         print(f"Videos in {args.video_folder}")
     if args.plot is not None:
