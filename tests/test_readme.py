@@ -360,3 +360,25 @@ def test_make_demo_as_is(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
     summary = demo.main([])
     assert summary["matching"][0] == summary["matching"][1] > 0 and "training" in summary
     assert time.time() - start < 300
+
+
+def test_the_headline_holds_the_decided_highway_merge_numbers() -> None:
+    """The README's headline (and the PEARL page's copy) holds Table I's Highway-Merge verdict as the rules compute it
+    from the committed results: the paired k = 0 and k = 5 intervals and the verdict words."""
+    from sb3_pearl.reproduce.table1_verdicts import decide_family
+
+    decision = decide_family("highway-merge", demo.default_results_dir())
+    assert decision.prior_interval is not None and decision.adapted_interval is not None
+    prior, adapted = decision.prior_interval, decision.adapted_interval
+    prior_text = f"{100 * prior.mean:+.1f} points [{100 * prior.low:+.1f}, {100 * prior.high:+.1f}]".lstrip("+")
+    adapted_text = f"{adapted.mean:+.2f} [{adapted.low:+.2f}, {adapted.high:+.2f}]".lstrip("+")
+    readme = README.read_text()
+    headline = readme[readme.index("<!-- headline:begin") : readme.index("<!-- headline:end")]
+    row = next(line for line in headline.splitlines() if line.startswith("| Highway-Merge"))
+    for text in (row, (ROOT / "docs" / "pearl.md").read_text()):
+        assert prior_text in text and adapted_text in text and f"margin -{decision.adapted_margin:.2f}" in text
+    verdict = row.rsplit("|", 2)[1]
+    assert ("**safer prior**" in verdict) == (decision.prior_verdict == "safer")
+    assert f"adapted as good: {decision.adapted_verdict}" in verdict or (
+        decision.adapted_verdict == "as good" and "**adapted as good**" in verdict
+    )
