@@ -19,6 +19,7 @@ from sb3_pearl.reproduce.table1_verdicts import (
     WORSE,
     decide_family,
     decision_lines,
+    reductions,
 )
 
 MERGE = ("merge-premise", "pearl-fixed-entropy"), ("merge-table1", "pearlplus-fixed-entropy")
@@ -129,3 +130,11 @@ def test_the_adapted_policys_violations_are_reported_beside_the_rules(tmp_path: 
     assert decision.adapted_verdict == AS_GOOD
     line = next(line for line in decision_lines(decision) if line.startswith("- Adapted policy's violations"))
     assert "rate 3.0% (PEARL) and 24.0% (PEARL+), paired difference +21.0 [+8.3, +33.7] points" in line
+
+
+def test_reductions_name_what_the_cpu_runs_cut_from_the_paper_budget() -> None:
+    # cpu.yml's walker2d-vel-long pearlplus entry against paper.yml's walker2d-vel one (the reference's settings)
+    text = reductions("walker2d-vel-long")
+    assert text.startswith("env steps 500,000 (paper 1,500,000), actor and critics 2x128 (paper 3x300)")
+    assert "RL rows a gradient step 8 tasks x 128 (paper 16 tasks x 256)" in text and "encoder 2x128 (paper 3x200)" in text
+    assert text.endswith("gradient steps an iteration 1200 (paper 2000)")

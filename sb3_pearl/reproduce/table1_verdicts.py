@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_pearl.experiments import get_experiment
+from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
 from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_result, run_dir
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval
@@ -183,6 +184,43 @@ def decide(results_dir: str | os.PathLike[str], rules: DecisionRules = RULES) ->
     return [decide_family(family, results_dir, rules) for family in DECIDED]
 
 
+# Each decided family's entry of the `paper` preset (the paper's / the reference implementation's budget), against
+# which the `cpu` runs' reductions are stated.
+PAPER_FAMILY = {"highway-merge": "highway-merge", "walker2d-vel-long": "walker2d-vel"}
+
+
+def _size(arch: Any) -> str:
+    return f"{len(arch)}x{arch[0]}" if arch and len(set(arch)) == 1 else "x".join(map(str, arch or []))
+
+
+def _budget_facts(entry: dict[str, Any]) -> dict[str, str]:
+    kwargs = entry["kwargs"]
+    return {
+        "env steps": f"{entry['n_timesteps']:,}",
+        "actor and critics": _size(kwargs.get("policy_kwargs", {}).get("net_arch")),
+        "prior critic": _size(kwargs.get("prior_critic_arch")),
+        "encoder": _size(kwargs.get("encoder_arch")),
+        "RL rows a gradient step": f"{kwargs['meta_batch']} tasks x {kwargs['batch_size']}",
+        "gradient steps an iteration": str(kwargs["num_train_steps_per_itr"]),
+    }
+
+
+def reductions(family: str, preset: str = "cpu", algo: str = "pearlplus") -> str:
+    """
+    What the decided family's runs reduced against the paper's budget: every setting of :func:`_budget_facts` where the
+    ``preset`` entry differs from the ``paper`` preset's entry of the paper's family (:data:`PAPER_FAMILY`).
+
+    :param family: a family of :data:`~sb3_pearl.experiments.table1_rules.DECIDED`
+    :param preset: the runs' budget preset
+    :param algo: the algorithm whose entry is compared
+    :return: one sentence, e.g. ``env steps 100,000 (paper 1,000,000), ...``
+    """
+    ours = _budget_facts(load_budget(preset, family, algo))
+    paper = _budget_facts(load_budget("paper", PAPER_FAMILY[family], algo))
+    changed = [f"{name} {value} (paper {paper[name]})" for name, value in ours.items() if value != paper[name]]
+    return ", ".join(changed) if changed else "nothing"
+
+
 def _pct(value: float) -> str:
     return "-" if not math.isfinite(value) else f"{100 * value:.1f}"
 
@@ -317,5 +355,9 @@ def decision_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> li
             + ", ".join(f"{experiment.variant(n).label} {sum(v) / len(v):.2f}" for n, v in velocity.items() if v)
             + "."
         )
+    out.append(
+        f"- Reduced against the paper's budget (`{PAPER_FAMILY[decision.family]}` in the `paper` preset): "
+        f"{reductions(decision.family)}."
+    )
     out += [f"- {note}." for note in decision.notes]
     return out
