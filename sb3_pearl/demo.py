@@ -12,7 +12,7 @@ short training run through train.py's pipeline.
    pipeline, one torch thread), which writes the zoo run folder ``logs/pearlplus/SafePointGoalMeta-v0_<n>/`` with its
    meta-test; ``enjoy.py`` replays it.
 
-    python -m sb3_pearl.demo                       # all three (about 2 minutes on an idle 2-core CPU: docs/cli.md)
+    python -m sb3_pearl.demo                       # all three (its duration: docs/cli.md, "make demo")
     python -m sb3_pearl.demo --skip-training       # the headline and the replay only
     python -m sb3_pearl.demo --replay-seeds 0 --n-tasks 5 --n-repeats 1 -n 2000   # a smaller one
 """

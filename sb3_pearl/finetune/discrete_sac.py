@@ -1,9 +1,9 @@
-"""SB3's SAC extended to Discrete action spaces (soft discrete SAC), for the Fine-Tune baseline.
+"""SB3's SAC (Haarnoja et al. 2018, arXiv:1801.01290) extended to Discrete action spaces, for the Fine-Tune baseline.
 
 Box action spaces run :class:`stable_baselines3.SAC` unchanged (its policy, its gradient step).
 Discrete action spaces use a categorical actor and critics with one Q value per action, so that
 the soft state value and the actor loss are exact expectations over actions (Christodoulou 2019,
-"Soft Actor-Critic for Discrete Action Settings"). The math is the project's
+"Soft Actor-Critic for Discrete Action Settings", arXiv:1910.07207). The math is the project's
 (:mod:`sb3_pearl.common.soft_actor_critic`) and the networks are PEARL's
 (:class:`~sb3_pearl.common.networks.CategoricalActor`, :class:`~sb3_pearl.common.networks.LatentCritic`)
 used without a latent input.

@@ -47,8 +47,8 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
     """
     Fine-Tune baseline: SAC trained on the mixture of the training tasks, fine-tuned on a new task.
 
-    Meta-training (``learn``) is SB3's SAC (Box actions) or the project's soft discrete SAC
-    (Discrete actions, :class:`~sb3_pearl.finetune.discrete_sac.DiscreteSAC`) with one change:
+    Meta-training (``learn``) is SB3's SAC (Haarnoja et al. 2018, arXiv:1801.01290; Box actions) or the project's
+    soft discrete SAC (Discrete actions, :class:`~sb3_pearl.finetune.discrete_sac.DiscreteSAC`) with one change:
     every episode of every env runs a training task drawn uniformly from :attr:`train_tasks`. The
     policy sees no task information (no task inference).
 
