@@ -12,7 +12,7 @@ short training run through train.py's pipeline.
    pipeline, one torch thread), which writes the zoo run folder ``logs/pearlplus/SafePointGoalMeta-v0_<n>/`` with its
    meta-test; ``enjoy.py`` replays it.
 
-    python -m sb3_pearl.demo                       # all three (about 2 minutes on an idle 2-core CPU: docs/cli.md)
+    python -m sb3_pearl.demo                       # all three (its duration: docs/cli.md, "make demo")
     python -m sb3_pearl.demo --skip-training       # the headline and the replay only
     python -m sb3_pearl.demo --replay-seeds 0 --n-tasks 5 --n-repeats 1 -n 2000   # a smaller one
 """
@@ -32,7 +32,6 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from huggingface_sb3 import EnvironmentName
-from rl_zoo3 import get_latest_run_id
 
 from sb3_pearl.common.checks import non_negative_int, positive_int
 from sb3_pearl.evaluation.held_out import run_meta_test
@@ -41,6 +40,7 @@ from sb3_pearl.evaluation.statistics import summarize, wilson_interval
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval
 from sb3_pearl.zoo import train
 from sb3_pearl.zoo.registry import register_algos
+from sb3_pearl.zoo.rl_zoo3_coupling import get_latest_run_id
 
 # The headline comparison, by label: the committed variant folders under results/ (every seed<N>/ with a result.json
 # counts). Decided by issue 36 (docs/results.md, "Table I on Highway-Merge at the reference's entropy setting"); the
@@ -220,7 +220,7 @@ def replay(
     :param label: the progress bar's text
     :return: the replayed meta-test, the number of its trajectories equal to the committed ones, and their number
     """
-    from rl_zoo3 import ALGOS
+    from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS
 
     committed, record = committed_meta_test(run_dir)
     n_tasks, n_repeats = min(n_tasks, len(committed.tasks)), min(n_repeats, int(committed.config["n_repeats"]))

@@ -45,20 +45,11 @@ def algorithm_class(name: str) -> type:
     return classes[name]
 
 
-def refused_kwargs(algo_class: type) -> frozenset[str]:
-    """Constructor kwargs a class refuses although its parent takes them (PEARL is PEARL+ without the prior term)."""
-    from sb3_pearl.pearl import PEARL
-
-    return (
-        frozenset({"prior_coef", "prior_critic", "prior_critic_arch", "prior_n_critics"})
-        if algo_class is PEARL
-        else frozenset()
-    )
-
-
 def constructor_kwargs(algo_class: type) -> set[str]:
     """
-    Keyword arguments ``algo_class(...)`` takes, following ``**kwargs`` up the MRO.
+    Keyword arguments ``algo_class(...)`` takes, following ``**kwargs`` up the MRO: a constructor that forwards
+    ``**kwargs`` (``PEARLPlus`` to ``PEARL``, ``FineTune`` to ``DiscreteSAC``) adds its parent's, and the walk stops at
+    the first one that does not. PEARL's own signature has no PEARL+ setting, so ``pearl`` refuses ``prior_coef``.
 
     :param algo_class: an algorithm class
     :return: the accepted names (without the ones the zoo and the harness set themselves)
@@ -71,7 +62,7 @@ def constructor_kwargs(algo_class: type) -> set[str]:
         accepted |= {p.name for p in params if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self"}
         if not any(p.kind == p.VAR_KEYWORD for p in params):
             break
-    return accepted - ZOO_SET_KWARGS - refused_kwargs(algo_class)
+    return accepted - ZOO_SET_KWARGS
 
 
 __all__ = ["ACTIVATIONS", "ALGORITHM_NAMES", "ZOO_SET_KWARGS", "algorithm_class", "algorithm_classes", "constructor_kwargs"]

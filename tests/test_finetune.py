@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ import sb3_pearl  # noqa: F401  (registers the task families)
 from sb3_pearl.common.tasks import draw_train_test_tasks
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune import DiscreteSAC, DiscreteSACPolicy, FineTune
+from sb3_pearl.registry import constructor_kwargs
 from tests.conftest import make_discrete_env, make_point_env
 
 th.set_num_threads(1)
@@ -338,3 +340,14 @@ def test_fine_tuning_improves_the_return_on_held_out_point_goals() -> None:
             model.adapt()
     mean = returns.mean(axis=0)
     assert mean[3] > mean[0] + 1.0, mean
+
+
+def test_finetune_states_only_its_own_arguments() -> None:
+    """SAC's arguments are written once (DiscreteSAC); FineTune forwards them and the registry still lists them."""
+    own = set(inspect.signature(FineTune.__init__).parameters) - {"self", "policy", "env", "kwargs", "_init_setup_model"}
+    sac = set(inspect.signature(DiscreteSAC.__init__).parameters) - {"self", "policy", "env"}
+    assert not own & sac
+    assert sac - {"tensorboard_log", "seed", "verbose", "device", "_init_setup_model"} <= constructor_kwargs(FineTune)
+    assert {"adapt_gradient_steps", "n_train_tasks"} <= constructor_kwargs(FineTune)
+    with pytest.raises(ValueError, match="batch_size must be an integer >= 1"):
+        FineTune("MlpPolicy", "NoSuchEnv-v0", batch_size=0)  # SAC's checks still come before the env is made

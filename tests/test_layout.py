@@ -8,6 +8,9 @@ cycle anywhere: neither between modules nor between rooms.
 from __future__ import annotations
 
 import ast
+import io
+import re
+import tokenize
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
@@ -162,3 +165,30 @@ def test_an_algorithm_imports_only_algorithm_code(package: str) -> None:
     )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert loaded == [], f"importing {package} loads {loaded}"
+
+
+SPEED_FIGURE = re.compile(r"\d+(\.\d+)?(-\d+(\.\d+)?)?(x|%) \*?(faster|slower)|\d+(-\d+)? fps\b")
+
+
+def docstrings_and_comments(path: Path) -> Iterable[tuple[int, str]]:
+    """The docstrings (with their first line) and the comments of a module."""
+    source = path.read_text()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            docstring = ast.get_docstring(node, clean=False)
+            if docstring is not None:
+                yield node.body[0].lineno, docstring
+    for token in tokenize.generate_tokens(io.StringIO(source).readline):
+        if token.type == tokenize.COMMENT:
+            yield token.start[0], token.string
+
+
+def test_docstrings_carry_no_speed_figures() -> None:
+    """Measured speed ratios belong in docs/ (speed.md, pearl.md, ...) with their command, not in code (issue 39)."""
+    found = [
+        f"{path.relative_to(PACKAGE.parent)}:{line}: {match.group(0)}"
+        for path in MODULES.values()
+        for line, text in docstrings_and_comments(path)
+        for match in SPEED_FIGURE.finditer(text)
+    ]
+    assert not found, found

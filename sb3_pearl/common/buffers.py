@@ -23,8 +23,8 @@ from sb3_pearl.common.type_aliases import MetaReplaySamples, ReturnTargets
 def gather_rows(array: np.ndarray, tasks: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """
     ``array[tasks[:, None], rows]`` for an array of shape ``(n_tasks, capacity, ...)``: one ``take`` of the flat rows
-    ``task * capacity + row`` on the array seen as ``(n_tasks * capacity, ...)`` (the same values, 1.6x faster than the
-    broadcast fancy index; a non-contiguous array, which that view would copy, takes the fancy index).
+    ``task * capacity + row`` on the array seen as ``(n_tasks * capacity, ...)`` (the same values as the broadcast fancy
+    index, in one gather: docs/speed.md; a non-contiguous array, which that view would copy, takes the fancy index).
 
     :param array: the per-task array
     :param tasks: task indices, shape ``(T,)``

@@ -23,7 +23,7 @@ LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 
 
 class InplaceReLU(nn.ReLU):
-    """ReLU that overwrites its input: the Linear output it follows is not needed by autograd (6-7% faster steps)."""
+    """ReLU that overwrites its input: the Linear output it follows is not needed by autograd (its speed: docs/speed.md)."""
 
     def __init__(self) -> None:
         super().__init__(inplace=True)
@@ -68,8 +68,8 @@ def fast_optimizer_kwargs(
     The optimizer arguments with torch's fused implementation switched on where it is the same algorithm and faster.
 
     ``torch.optim.Adam`` runs its single-tensor loop on a CPU unless told otherwise; ``fused=True`` (one kernel for
-    all parameters, CPU and CUDA) is 3x faster there (benchmarks/throughput.py, docs/speed.md) and computes the same
-    update up to float rounding. Arguments the user gave (``fused``, ``foreach``) are kept as they are.
+    all parameters, CPU and CUDA) runs the same update up to float rounding in fewer kernels (its speed: docs/speed.md,
+    "What changed in the step"). Arguments the user gave (``fused``, ``foreach``) are kept as they are.
 
     :param optimizer_class: the optimizer class
     :param optimizer_kwargs: the user's arguments (not modified)

@@ -1,7 +1,7 @@
 """bfloat16 only where it is native: ``use_bf16=True`` falls back to float32 (with a warning) elsewhere.
 
 On a CPU without bfloat16 instructions (AVX2 only) torch emulates bfloat16 autocast and a PEARL+
-gradient step runs 1.5-18x *slower* than in float32 (docs/references.md, "Measured costs"). Native
+gradient step runs *slower* than in float32 (the figures: docs/speed.md, "Opt-in: bfloat16"). Native
 support: x86 CPUs with AVX512-BF16 or AMX-BF16, Arm CPUs with the BF16 extension (``/proc/cpuinfo``
 flags), CUDA devices for which ``torch.cuda.is_bf16_supported()``.
 """

@@ -1,9 +1,8 @@
 """The default number of torch threads: the count that is fastest for the network sizes in use, unless the user chose.
 
-torch starts with one intra-op thread per core. At this project's network sizes that is never faster than one thread
-and, on a machine whose cores are busy, many times slower (the threads of a matrix product wait on each other): a
-SafePoint ``train.py -n 3000`` run went at 46-164 fps with torch's default and at 560-833 fps with one thread, on
-2 cores with the other one busy (issue 38; docs/speed.md has the measurements behind the rule).
+torch starts with one intra-op thread per core. At this project's network sizes that is not faster than one thread
+and, on a machine whose cores are busy, many times slower (the threads of a matrix product wait on each other;
+docs/speed.md, "The thread default", has the measurements behind the rule).
 
 The rule (:func:`default_num_threads`):
 

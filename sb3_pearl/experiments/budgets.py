@@ -3,9 +3,8 @@
 One YAML file per preset in ``sb3_pearl/config/presets/`` (shipped with the package):
 
 - ``smoke``: seconds per run, for the tests;
-- ``cpu``: sized for one run <= 45 minutes on one core of the project's CPU machine (measured: PEARL / PEARL+ 8-42
-  minutes, Fine-Tune on Walker2D-vel 1.8 hours; docs/reproduce.md has
-  the timing measurements behind each number);
+- ``cpu``: sized for one run <= 45 minutes on one core of the project's CPU machine (docs/reproduce.md has the timing
+  measurements behind each number, and the runs that take longer);
 - ``paper``: the paper's / the reference implementation's budgets (a GPU machine).
 
 Each file maps family name -> zoo algorithm name -> entry::

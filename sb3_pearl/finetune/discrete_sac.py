@@ -1,9 +1,9 @@
-"""SB3's SAC extended to Discrete action spaces (soft discrete SAC), for the Fine-Tune baseline.
+"""SB3's SAC (Haarnoja et al. 2018, arXiv:1801.01290) extended to Discrete action spaces, for the Fine-Tune baseline.
 
 Box action spaces run :class:`stable_baselines3.SAC` unchanged (its policy, its gradient step).
 Discrete action spaces use a categorical actor and critics with one Q value per action, so that
 the soft state value and the actor loss are exact expectations over actions (Christodoulou 2019,
-"Soft Actor-Critic for Discrete Action Settings"). The math is the project's
+"Soft Actor-Critic for Discrete Action Settings", arXiv:1910.07207). The math is the project's
 (:mod:`sb3_pearl.common.soft_actor_critic`) and the networks are PEARL's
 (:class:`~sb3_pearl.common.networks.CategoricalActor`, :class:`~sb3_pearl.common.networks.LatentCritic`)
 used without a latent input.
@@ -27,6 +27,16 @@ from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
+from sb3_pearl.common.checks import (
+    check_arch,
+    check_ent_coef,
+    check_gamma,
+    check_int,
+    check_learning_rate,
+    check_real,
+    check_tau,
+    is_integer,
+)
 from sb3_pearl.common.networks import CategoricalActor, LatentCritic
 from sb3_pearl.common.soft_actor_critic import (
     critic_regression_loss,
@@ -147,10 +157,39 @@ class DiscreteSAC(SAC):
 
     The order of the updates, the Polyak update of the target critics, the logger keys
     (``train/critic_loss``, ``train/actor_loss``, ``train/ent_coef``, ``train/ent_coef_loss``) and
-    save / load are SAC's. Takes every argument of :class:`~stable_baselines3.SAC` (gSDE is Box only).
+    save / load are SAC's. Takes every argument of :class:`~stable_baselines3.SAC` with SAC's defaults (gSDE is Box
+    only), stated here once for the project: ``SAC.__init__`` refuses Discrete action spaces, so this constructor calls
+    ``OffPolicyAlgorithm.__init__`` itself. Each argument is checked before anything is built (docs/reliability.md).
 
     :param policy: ``"MlpPolicy"`` (SAC's MlpPolicy for Box, :class:`DiscreteSACPolicy` for Discrete) or a class
     :param env: the environment (Box or Discrete actions)
+    :param learning_rate: learning rate (constant or schedule)
+    :param buffer_size: replay buffer size
+    :param learning_starts: random-action steps before the first gradient step
+    :param batch_size: minibatch size
+    :param tau: Polyak coefficient of the target critics
+    :param gamma: discount factor
+    :param train_freq: update the model every ``train_freq`` steps (int or ``(n, "step" | "episode")``)
+    :param gradient_steps: gradient steps after each rollout (-1: as many as env steps collected)
+    :param action_noise: extra exploration noise (Box)
+    :param replay_buffer_class: replay buffer class
+    :param replay_buffer_kwargs: its extra arguments
+    :param optimize_memory_usage: SB3's memory-efficient replay buffer
+    :param n_steps: n-step returns
+    :param ent_coef: ``"auto"`` / ``"auto_<init>"`` (learned) or a float
+    :param target_update_interval: Polyak update of the target critics every this many gradient steps
+    :param target_entropy: target of the learned entropy coefficient (``"auto"``: ``-dim(A)`` for Box,
+        ``0.6 * log(n_actions)`` for Discrete)
+    :param use_sde: generalised state-dependent exploration (Box only)
+    :param sde_sample_freq: gSDE noise resampling frequency
+    :param use_sde_at_warmup: gSDE instead of uniform random actions before ``learning_starts``
+    :param stats_window_size: episodes averaged in the rollout logs
+    :param tensorboard_log: TensorBoard log folder
+    :param policy_kwargs: extra policy arguments (``net_arch``, ``activation_fn``, ``n_critics``, ...)
+    :param verbose: 0 silent, 1 info, 2 debug
+    :param seed: seed of the networks and the sampling
+    :param device: torch device
+    :param _init_setup_model: build the networks at construction
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = dict(SAC.policy_aliases)
@@ -186,6 +225,21 @@ class DiscreteSAC(SAC):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
+        # Every argument checked before anything is built (docs/reliability.md).
+        check_int("batch_size", batch_size, 1, hint="minibatch size of meta-training")
+        check_int("buffer_size", buffer_size, 1, hint="replay buffer size of meta-training")
+        check_int("learning_starts", learning_starts, 0, hint="random-action steps before the first gradient step")
+        check_int("target_update_interval", target_update_interval, 1, hint="gradient steps between target updates")
+        check_int("n_steps", n_steps, 1, hint="n-step returns; 1 for one-step")
+        if not (is_integer(gradient_steps) and (gradient_steps >= 0 or gradient_steps == -1)):
+            raise ValueError(f"gradient_steps must be an integer >= 0, or -1 (as many as env steps), got {gradient_steps!r}")
+        check_learning_rate("learning_rate", learning_rate)
+        check_gamma(gamma)
+        check_tau(tau)
+        check_ent_coef(ent_coef)
+        if target_entropy != "auto":
+            check_real("target_entropy", target_entropy, hint="or 'auto'")
+        check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
         # SAC.__init__ admits Box action spaces only (an assertion): run its parent with both
         # spaces admitted, then set SAC's own attributes exactly as SAC.__init__ does.
         OffPolicyAlgorithm.__init__(

@@ -16,26 +16,17 @@ from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
-import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Logger
-from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFrequencyUnit
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, TrainFrequencyUnit
 from stable_baselines3.common.utils import ConstantSchedule, get_parameters_by_name
 from stable_baselines3.sac.policies import SACPolicy
 
 from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.checks import (
-    check_arch,
-    check_ent_coef,
-    check_gamma,
-    check_int,
-    check_learning_rate,
     check_real,
-    check_tau,
-    is_integer,
 )
 from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
@@ -56,8 +47,8 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
     """
     Fine-Tune baseline: SAC trained on the mixture of the training tasks, fine-tuned on a new task.
 
-    Meta-training (``learn``) is SB3's SAC (Box actions) or the project's soft discrete SAC
-    (Discrete actions, :class:`~sb3_pearl.finetune.discrete_sac.DiscreteSAC`) with one change:
+    Meta-training (``learn``) is SB3's SAC (Haarnoja et al. 2018, arXiv:1801.01290; Box actions) or the project's
+    soft discrete SAC (Discrete actions, :class:`~sb3_pearl.finetune.discrete_sac.DiscreteSAC`) with one change:
     every episode of every env runs a training task drawn uniformly from :attr:`train_tasks`. The
     policy sees no task information (no task inference).
 
@@ -76,26 +67,6 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
 
     :param policy: ``"MlpPolicy"`` (SAC's MlpPolicy for Box, :class:`DiscreteSACPolicy` for Discrete) or a class
     :param env: an env id or env following the task protocol (``sample_tasks``, ``set_task``, ``get_task``)
-    :param learning_rate: learning rate of meta-training (constant or schedule)
-    :param buffer_size: replay buffer size of meta-training (all training tasks mixed)
-    :param learning_starts: random-action steps before the first gradient step
-    :param batch_size: minibatch size of meta-training
-    :param tau: Polyak coefficient of the target critics
-    :param gamma: discount factor
-    :param train_freq: update the model every ``train_freq`` steps (int or ``(n, "step" | "episode")``)
-    :param gradient_steps: gradient steps after each rollout (-1: as many as env steps collected)
-    :param action_noise: extra exploration noise (Box)
-    :param replay_buffer_class: replay buffer class of meta-training
-    :param replay_buffer_kwargs: its extra arguments
-    :param optimize_memory_usage: SB3's memory-efficient replay buffer
-    :param n_steps: n-step returns
-    :param ent_coef: ``"auto"`` / ``"auto_<init>"`` (learned) or a float
-    :param target_update_interval: Polyak update of the target critics every this many gradient steps
-    :param target_entropy: target of the learned entropy coefficient (``"auto"``: ``-dim(A)`` for Box,
-        ``0.6 * log(n_actions)`` for Discrete)
-    :param use_sde: generalised state-dependent exploration (Box only)
-    :param sde_sample_freq: gSDE noise resampling frequency
-    :param use_sde_at_warmup: gSDE instead of uniform random actions before ``learning_starts``
     :param n_train_tasks: training tasks: the first ``n_train_tasks`` of ``env.sample_tasks(n_train_tasks +
         n_test_tasks, seed)`` (the same draw as PEARL / PEARL+ / MAML, so a seed gives every algorithm the same tasks)
     :param n_test_tasks: held-out test tasks: the rest of that draw
@@ -112,13 +83,11 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
     :param adapt_learning_rate: learning rate of the adaptation steps (``None``: the initial learning rate of
         meta-training, ``lr_schedule(1)``)
     :param adapt_buffer_size: capacity of the new task's replay buffer (transitions)
-    :param stats_window_size: episodes averaged in the rollout logs
-    :param tensorboard_log: TensorBoard log folder
-    :param policy_kwargs: extra policy arguments (``net_arch``, ``activation_fn``, ``n_critics``, ...)
-    :param verbose: 0 silent, 1 info, 2 debug
-    :param seed: seed of the networks, the task draw and the sampling
-    :param device: torch device
     :param _init_setup_model: build the networks at construction
+    :param kwargs: every other argument is SAC's, as :class:`~sb3_pearl.finetune.discrete_sac.DiscreteSAC` takes it
+        (``learning_rate``, ``buffer_size``, ``batch_size``, ``gamma``, ``ent_coef``, ``policy_kwargs``, ``seed``, ...),
+        passed by name, with SAC's defaults; meta-training uses them (``batch_size`` and ``buffer_size`` are
+        meta-training's, all training tasks mixed)
     """
 
     # Read by the meta-test protocol (sb3_pearl.evaluation.meta_test): False keeps its deterministic
@@ -133,25 +102,7 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
         self,
         policy: str | type[SACPolicy] | type[DiscreteSACPolicy],
         env: GymEnv | str,
-        learning_rate: float | Schedule = 3e-4,
-        buffer_size: int = 1_000_000,
-        learning_starts: int = 100,
-        batch_size: int = 256,
-        tau: float = 0.005,
-        gamma: float = 0.99,
-        train_freq: int | tuple[int, str] = 1,
-        gradient_steps: int = 1,
-        action_noise: ActionNoise | None = None,
-        replay_buffer_class: type[ReplayBuffer] | None = None,
-        replay_buffer_kwargs: dict[str, Any] | None = None,
-        optimize_memory_usage: bool = False,
-        n_steps: int = 1,
-        ent_coef: str | float = "auto",
-        target_update_interval: int = 1,
-        target_entropy: str | float = "auto",
-        use_sde: bool = False,
-        sde_sample_freq: int = -1,
-        use_sde_at_warmup: bool = False,
+        *,
         n_train_tasks: int = 100,
         n_test_tasks: int = 30,
         train_tasks: list[Task] | None = None,
@@ -161,30 +112,11 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
         adapt_batch_size: int | None = None,
         adapt_learning_rate: float | None = None,
         adapt_buffer_size: int = 10_000,
-        stats_window_size: int = 100,
-        tensorboard_log: str | None = None,
-        policy_kwargs: dict[str, Any] | None = None,
-        verbose: int = 0,
-        seed: int | None = None,
-        device: th.device | str = "auto",
         _init_setup_model: bool = True,
+        **kwargs: Any,
     ):
-        # Every argument checked before anything is built (docs/reliability.md).
+        # Every argument checked before anything is built (docs/reliability.md); SAC's by DiscreteSAC.__init__.
         check_task_arguments(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
-        check_int("batch_size", batch_size, 1, hint="minibatch size of meta-training")
-        check_int("buffer_size", buffer_size, 1, hint="replay buffer size of meta-training")
-        check_int("learning_starts", learning_starts, 0, hint="random-action steps before the first gradient step")
-        check_int("target_update_interval", target_update_interval, 1, hint="gradient steps between target updates")
-        check_int("n_steps", n_steps, 1, hint="n-step returns; 1 for one-step")
-        if not (is_integer(gradient_steps) and (gradient_steps >= 0 or gradient_steps == -1)):
-            raise ValueError(f"gradient_steps must be an integer >= 0, or -1 (as many as env steps), got {gradient_steps!r}")
-        check_learning_rate("learning_rate", learning_rate)
-        check_gamma(gamma)
-        check_tau(tau)
-        check_ent_coef(ent_coef)
-        if target_entropy != "auto":
-            check_real("target_entropy", target_entropy, hint="or 'auto'")
-        check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
         if adapt_gradient_steps < 0:
             raise ValueError(f"adapt_gradient_steps must be >= 0, got {adapt_gradient_steps}")
         if adapt_batch_size is not None and adapt_batch_size < 1:
@@ -195,36 +127,7 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
             raise ValueError(f"adapt_buffer_size must be >= 1, got {adapt_buffer_size}")
         if max_episode_steps is not None and max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be >= 1 or None, got {max_episode_steps}")
-        super().__init__(
-            policy,
-            env,
-            learning_rate=learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            train_freq=train_freq,
-            gradient_steps=gradient_steps,
-            action_noise=action_noise,
-            replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
-            ent_coef=ent_coef,
-            target_update_interval=target_update_interval,
-            target_entropy=target_entropy,
-            use_sde=use_sde,
-            sde_sample_freq=sde_sample_freq,
-            use_sde_at_warmup=use_sde_at_warmup,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
-            verbose=verbose,
-            seed=seed,
-            device=device,
-            _init_setup_model=False,
-        )
+        super().__init__(policy, env, _init_setup_model=False, **kwargs)
         self._init_meta_algorithm(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
         self.max_episode_steps = max_episode_steps
         self.adapt_gradient_steps = adapt_gradient_steps

@@ -50,7 +50,7 @@ SelfMAML = TypeVar("SelfMAML", bound="MAML")
 class MAML(MetaAlgorithm, SaveLoadMixin, BaseAlgorithm):
     """
     MAML-TRPO: Model-Agnostic Meta-Learning with a TRPO outer loop (Finn et al. 2017).
-    Paper: https://arxiv.org/abs/1703.03400
+    Paper: arXiv:1703.03400 (https://arxiv.org/abs/1703.03400)
 
     The env must follow the task protocol of ``sb3_pearl.envs`` (``sample_tasks``, ``set_task``,
     ``get_task``); each env of the VecEnv runs one task at a time.

@@ -1,4 +1,4 @@
-"""PEARL (Rakelly et al. 2019) and PEARL+ (the paper: PEARL plus a prior-regularisation term).
+"""PEARL (Rakelly et al. 2019, arXiv:1903.08254) and PEARL+ (the paper: PEARL plus a prior-regularisation term).
 
 ``train()`` follows Algorithm 1 of the paper, vectorised over the ``meta_batch`` tasks: every
 network runs once per gradient step on the rows of all tasks, shaped ``(T * B, ...)``.
@@ -49,7 +49,7 @@ SelfPEARL = TypeVar("SelfPEARL", bound="PEARL")
 
 class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
     """
-    PEARL (Rakelly et al. 2019): off-policy meta-RL with probabilistic context variables.
+    PEARL (Rakelly et al. 2019, arXiv:1903.08254): off-policy meta-RL with probabilistic context variables.
 
     A context encoder infers q(z | c) from a task's transitions (product of Gaussians with a KL
     bottleneck to N(0, I)); a soft actor-critic conditioned on z acts and learns. The encoder is
@@ -100,10 +100,10 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
     :param num_extra_rl_steps_posterior: posterior-z steps per visited task for the RL buffer only
     :param num_train_steps_per_itr: gradient steps per iteration
     :param use_bf16: run the hidden layers of every network in bfloat16 (``torch.autocast``) during
-        gradient steps; weights, optimizers, output layers and losses stay float32. 2.6x faster
-        PEARL+ steps on a CPU with AVX512-BF16; on a device without native bfloat16 (an AVX2-only CPU:
-        1.5-18x slower) ``True`` warns and trains in float32, ``"force"`` uses bfloat16 anyway
-        (:mod:`sb3_pearl.common.precision`, docs/pearl.md)
+        gradient steps; weights, optimizers, output layers and losses stay float32. It pays only where
+        bfloat16 is native (e.g. a CPU with AVX512-BF16); on a device without it torch emulates bfloat16,
+        slower than float32, so ``True`` warns and trains in float32, ``"force"`` uses bfloat16 anyway
+        (:mod:`sb3_pearl.common.precision`; the speed and learning figures: docs/pearl.md, docs/speed.md)
     :param grad_conflict_log_freq: every this many gradient steps, log ``train/grad_conflict_ratio``
         (``||prior_coef * grad prior term|| / ||grad posterior term||`` on the actor parameters) and
         ``train/grad_conflict_cos`` (their cosine) from that step's losses (docs/diagnostics.md); 0: off
@@ -175,35 +175,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         _init_setup_model: bool = True,
     ):
         # Every argument checked before anything is built (docs/reliability.md).
-        check_pearl_arguments(
-            learning_rate=learning_rate,
-            buffer_size=buffer_size,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            latent_dim=latent_dim,
-            kl_weight=kl_weight,
-            encoder_arch=encoder_arch,
-            ent_coef=ent_coef,
-            target_entropy=target_entropy,
-            reward_scale=reward_scale,
-            n_train_tasks=n_train_tasks,
-            n_test_tasks=n_test_tasks,
-            train_tasks=train_tasks,
-            test_tasks=test_tasks,
-            meta_batch=meta_batch,
-            embedding_batch_size=embedding_batch_size,
-            num_initial_steps=num_initial_steps,
-            num_tasks_sample=num_tasks_sample,
-            num_steps_prior=num_steps_prior,
-            num_steps_posterior=num_steps_posterior,
-            num_extra_rl_steps_posterior=num_extra_rl_steps_posterior,
-            num_train_steps_per_itr=num_train_steps_per_itr,
-            use_bf16=use_bf16,
-            grad_conflict_log_freq=grad_conflict_log_freq,
-            partial_iteration=partial_iteration,
-            policy_kwargs=policy_kwargs,
-        )
+        check_pearl_arguments(locals())
         super().__init__(
             policy,
             env,

@@ -176,7 +176,7 @@ class PEARLPolicy(BasePolicy):
             self.prior_critic_target.load_state_dict(self.prior_critic.state_dict())
             self.prior_critic_target.requires_grad_(False)
 
-        # Adam in torch's fused form unless the user chose (the same update, 3x faster on a CPU: docs/speed.md)
+        # Adam in torch's fused form unless the user chose (the same update in one kernel; its speed: docs/speed.md)
         kwargs = fast_optimizer_kwargs(self.optimizer_class, self.optimizer_kwargs, self.device)
         self.fused_optimizers: bool | None = kwargs.get("fused")  # restored after loading saved optimizer states
 

@@ -2,8 +2,8 @@
 
 The presets (``sb3_pearl/config/presets/*.yml``, read by
 :func:`~sb3_pearl.experiments.budgets.load_budget`) are the one source of the reproduction harness's budgets;
-``--budget cpu`` trains with the same entry (PEARL / PEARL+ runs of 8-42 minutes on one core) instead of the paper-sized
-entry of ``zoo_hyperparams/<algo>.yml``. Env ids map to the presets' family names through
+``--budget cpu`` trains with the same entry (sized for one run <= 45 minutes on one core; the timings: docs/reproduce.md)
+instead of the paper-sized entry of ``zoo_hyperparams/<algo>.yml``. Env ids map to the presets' family names through
 :data:`sb3_pearl.experiments.families.FAMILIES`.
 """
 

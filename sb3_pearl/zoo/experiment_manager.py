@@ -37,12 +37,8 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from pprint import pprint
 from typing import Any
-from unittest import mock
 
 import gymnasium as gym
-import rl_zoo3.train
-from rl_zoo3 import ALGOS
-from rl_zoo3.utils import get_latest_run_id
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -59,6 +55,7 @@ from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager
 from sb3_pearl.zoo.meta_testing import ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
 from sb3_pearl.zoo.registry import OptunaTrialIndex, constructor_kwargs, register_algos
+from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, get_latest_run_id, run_zoo_train
 from sb3_pearl.zoo.safe_config import parse_dict_string
 from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, exit_on_usage_error
 
@@ -334,7 +331,8 @@ def train(argv: Sequence[str] | None = None) -> None:
     counter).
 
     rl_zoo3's ``train()`` takes no experiment manager or argument-parsing class: it reads the module names
-    ``ExperimentManager`` and ``StoreDict``. They are replaced for this call only (restored on exit, also on errors).
+    ``ExperimentManager`` and ``StoreDict``, replaced for this call only by
+    :func:`~sb3_pearl.zoo.rl_zoo3_coupling.run_zoo_train` (the contract: :mod:`sb3_pearl.zoo.rl_zoo3_coupling`).
 
     :param argv: command-line arguments (default: ``sys.argv[1:]``)
     """
@@ -344,17 +342,12 @@ def train(argv: Sequence[str] | None = None) -> None:
         if num_threads_flag(flags.zoo_args) > 0:  # rl_zoo3 sets it; learn() must not replace it with the default
             mark_num_threads_explicit()
         manager = functools.partial(MetaExperimentManager, resume=flags.resume, budget=flags.budget, command=flags.command)
-        with (
-            mock.patch.object(sys, "argv", [sys.argv[0], *flags.zoo_args]),
-            mock.patch.object(rl_zoo3.train, "ExperimentManager", manager),
-            mock.patch.object(rl_zoo3.train, "StoreDict", CheckedStoreDict),  # a bad -params value: one line
-        ):
-            try:
-                rl_zoo3.train.train()
-            except SystemExit:
-                if {"-h", "--help"} & set(flags.zoo_args):
-                    print(PROJECT_FLAGS_HELP)
-                raise
+        try:
+            run_zoo_train(flags.zoo_args, manager, CheckedStoreDict)  # CheckedStoreDict: a bad -params value is one line
+        except SystemExit:
+            if {"-h", "--help"} & set(flags.zoo_args):
+                print(PROJECT_FLAGS_HELP)
+            raise
 
 
 __all__ = [

@@ -92,7 +92,7 @@ def check_resume_buffer(checkpoint: str, algo: str | None) -> None:
     :param checkpoint: the model zip
     :param algo: the ``--algo`` value
     """
-    from rl_zoo3 import ALGOS
+    from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS
 
     algo_class = ALGOS.get(algo or "")
     if algo_class is None or not hasattr(algo_class, "load_replay_buffer"):

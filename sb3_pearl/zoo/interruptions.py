@@ -21,11 +21,11 @@ import threading
 from types import FrameType
 from typing import Any
 
-from rl_zoo3.exp_manager import ExperimentManager
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.zoo.rl_zoo3_coupling import ExperimentManager
 from sb3_pearl.zoo.usage import program_name
 
 INTERRUPTED_FILE = "interrupted.json"  # in the run folder of a run cut by a signal

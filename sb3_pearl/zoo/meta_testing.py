@@ -18,10 +18,7 @@ from __future__ import annotations
 
 import functools
 from typing import Any
-from unittest import mock
 
-import rl_zoo3.exp_manager
-from rl_zoo3.exp_manager import ExperimentManager
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import CheckpointCallback, ProgressBarCallback
 
@@ -30,6 +27,7 @@ from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, META_TEST_DEFAULTS,
 from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.evaluation.progress import TrainingProgressCallback
 from sb3_pearl.zoo.budget import faster_option
+from sb3_pearl.zoo.rl_zoo3_coupling import ExperimentManager, trial_eval_callback_replaced
 from sb3_pearl.zoo.usage import program_name
 
 # The zoo key `meta_test`: the settings of every meta-test plus the eval seed of its tasks (evaluation/held_out.py).
@@ -102,9 +100,8 @@ class MetaTestExperimentManager(ExperimentManager):
         settings = {key: self.meta_test_kwargs[key] for key in ("n_adapt", "n_repeats")}
         settings["eval_seed"] = self.validation_seed  # trials are never scored on the final meta-test's tasks
         # rl_zoo3's objective() builds its TrialEvalCallback from the module's name and takes no callback class: the
-        # name is replaced for this call only (restored on exit, also on errors).
-        trial_callback = functools.partial(MetaTestTrialCallback, **settings)
-        with mock.patch.object(rl_zoo3.exp_manager, "TrialEvalCallback", trial_callback):
+        # name is replaced for this call only (sb3_pearl.zoo.rl_zoo3_coupling).
+        with trial_eval_callback_replaced(functools.partial(MetaTestTrialCallback, **settings)):
             super().hyperparameters_optimization()
 
     def final_meta_test(self, model: BaseAlgorithm) -> MetaTestResult:

@@ -2,7 +2,8 @@
 
 :func:`register_algos` puts ``pearl`` / ``pearlplus`` (and ``finetune`` / ``maml`` when
 :mod:`sb3_pearl` exports ``FineTune`` / ``MAML``) in ``rl_zoo3.ALGOS`` and the PEARL / PEARL+
-hyperparameter samplers in ``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER`` (``-optimize``).
+hyperparameter samplers in ``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER`` (``-optimize``), through
+:func:`sb3_pearl.zoo.rl_zoo3_coupling.register_algorithms`.
 """
 
 from __future__ import annotations
@@ -10,14 +11,13 @@ from __future__ import annotations
 from typing import Any
 
 import optuna
-from rl_zoo3 import ALGOS
-from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
 from stable_baselines3.common.base_class import BaseAlgorithm
 from torch import nn
 
 import sb3_pearl
 from sb3_pearl.pearl import PEARL, PEARLPlus
 from sb3_pearl.registry import ZOO_SET_KWARGS, constructor_kwargs
+from sb3_pearl.zoo.rl_zoo3_coupling import register_algorithms
 
 # Optuna categorical choices (names are stored in the study, converted by convert_pearl_params)
 NET_ARCHS: dict[str, list[int]] = {"small": [64, 64], "medium": [256, 256], "big": [300, 300, 300]}
@@ -105,9 +105,11 @@ def register_algos() -> dict[str, type[BaseAlgorithm]]:
         algo = getattr(sb3_pearl, attribute, None)
         if algo is not None:
             algos[name] = algo
-    ALGOS.update(algos)
-    HYPERPARAMS_SAMPLER.update({"pearl": sample_pearl_params, "pearlplus": sample_pearlplus_params})
-    HYPERPARAMS_CONVERTER.update({"pearl": convert_pearl_params, "pearlplus": convert_pearl_params})
+    register_algorithms(
+        algos,
+        samplers={"pearl": sample_pearl_params, "pearlplus": sample_pearlplus_params},
+        converters={"pearl": convert_pearl_params, "pearlplus": convert_pearl_params},
+    )
     return algos
 
 

@@ -19,8 +19,6 @@ import torch as th
 from gymnasium.envs.registration import load_env_creator
 from gymnasium.wrappers import HumanRendering, RecordVideo
 from huggingface_sb3 import EnvironmentName
-from rl_zoo3 import ALGOS, create_test_env
-from rl_zoo3.utils import get_model_path
 from stable_baselines3.common.utils import set_random_seed
 
 from sb3_pearl.common.checks import non_negative_int, positive_int
@@ -31,6 +29,7 @@ from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult
 from sb3_pearl.evaluation.statistics import format_prior_posterior_table
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
 from sb3_pearl.zoo.registry import register_algos
+from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, create_test_env, get_model_path
 from sb3_pearl.zoo.safe_config import UnsafeConfigError, get_saved_hyperparams, load_run_yaml
 from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, check_env_id, exit_on_usage_error
 

@@ -17,9 +17,9 @@ from contextlib import contextmanager
 from typing import Any
 
 import gymnasium as gym
-from rl_zoo3.utils import StoreDict
 
 from sb3_pearl.common.checks import output_folder_problem
+from sb3_pearl.zoo.rl_zoo3_coupling import StoreDict
 
 EXIT_USAGE = 2  # argparse's status for a bad command line
 
