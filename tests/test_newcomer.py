@@ -217,7 +217,7 @@ def test_budget_flag_takes_the_preset_entry() -> None:
     entry = budget_hyperparams("cpu", "Walker2dVelMeta-v0", "maml")
     budget = load_budget("cpu", "walker2d-vel", "maml")
     assert entry["n_timesteps"] == budget["n_timesteps"] and entry["meta_test"] == budget["meta_test"]
-    assert entry["policy_kwargs"] == "dict(net_arch=[64, 64], activation_fn=nn.Tanh)"  # rl_zoo3 evaluates it
+    assert entry["policy_kwargs"] == {"net_arch": [64, 64], "activation_fn": "tanh"}  # the preset's plain data, no eval
     assert entry["meta_batch_size"] == budget["kwargs"]["meta_batch_size"]
     hint = faster_option("AntVelMeta-v0", "pearlplus", None)
     assert "--budget cpu" in hint and f"{load_budget('cpu', 'ant3d-vel', 'pearlplus')['n_timesteps']:,} env steps" in hint
@@ -245,3 +245,22 @@ def test_plots_without_output_write_into_the_run_folder(tmp_path: Path, monkeypa
     plots_main([str(run_dir)])
     assert (run_dir / "plots.png").is_file() and (run_dir / "plots_violations.png").is_file()
     assert not list(tmp_path.glob("*.png"))
+
+
+def test_budget_preset_policy_kwargs_reach_the_model_without_eval(tmp_path: Path) -> None:
+    """``train.py --budget smoke``: the preset's ``policy_kwargs`` (activation by name) reach the saved model as the
+    harness builds them, and the run's config.yml keeps them as the preset's plain data (no string, no eval)."""
+    from torch import nn
+
+    from sb3_pearl.maml import MAML
+    from sb3_pearl.zoo import train
+    from sb3_pearl.zoo.safe_config import load_run_yaml
+
+    env_id = "SafePointGoalMeta-v0"
+    train(["--algo", "maml", "--env", env_id, "--budget", "smoke", "-f", str(tmp_path), "--seed", "0", "--num-threads", "1"])
+    run_dir = tmp_path / "maml" / f"{env_id}_1"
+    model = MAML.load(run_dir / f"{env_id}.zip")
+    assert model.policy_kwargs["activation_fn"] is nn.Tanh and model.policy_kwargs["net_arch"] == [16, 16]
+    assert any(isinstance(module, nn.Tanh) for module in model.policy.modules())
+    saved = dict(load_run_yaml(run_dir / env_id / "config.yml"))  # the safe loader: a class would be refused
+    assert dict(saved["policy_kwargs"]) == {"net_arch": [16, 16], "activation_fn": "tanh"}

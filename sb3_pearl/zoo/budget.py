@@ -14,11 +14,7 @@ from typing import Any
 from sb3_pearl.experiments.budgets import PRESETS, load_budget, preset_entries
 from sb3_pearl.experiments.families import FAMILIES
 from sb3_pearl.experiments.spec import Family
-from sb3_pearl.registry import ACTIVATIONS
 from sb3_pearl.zoo.usage import UsageError
-
-# Activation names of the presets -> the expression rl_zoo3 evaluates in a policy_kwargs string (torch.nn as nn).
-ACTIVATION_EXPRESSIONS = {name: f"nn.{cls.__name__}" for name, cls in ACTIVATIONS.items()}  # the zoo's string form
 
 
 def env_family(env_id: str) -> Family | None:
@@ -35,23 +31,6 @@ def families_with(preset: str, algo: str) -> list[str]:
     """``"<EnvId> (<family>)"`` for every family with an entry for ``algo`` in ``preset``."""
     entries = preset_entries(preset)
     return [f"{f.env_id} ({f.budget_name})" for f in FAMILIES.values() if algo in entries.get(f.budget_name, [])]
-
-
-def policy_kwargs_string(policy_kwargs: dict[str, Any]) -> str:
-    """
-    A preset's ``policy_kwargs`` as the zoo's string form (``"dict(net_arch=[128, 128], activation_fn=nn.Tanh)"``):
-    rl_zoo3 evaluates it and the run folder's ``config.yml`` stays plain data.
-
-    :param policy_kwargs: as written in a preset (activation by name)
-    :return: the string
-    """
-    items = []
-    for key, value in policy_kwargs.items():
-        if key == "activation_fn":
-            items.append(f"{key}={ACTIVATION_EXPRESSIONS[value]}")
-        else:
-            items.append(f"{key}={value!r}")
-    return f"dict({', '.join(items)})"
 
 
 def budget_hyperparams(preset: str, env_id: str, algo: str) -> dict[str, Any]:
@@ -75,9 +54,7 @@ def budget_hyperparams(preset: str, env_id: str, algo: str) -> dict[str, Any]:
             f"lower -n or the network sizes with -params"
         )
     budget = load_budget(preset, family.budget_name, algo)
-    kwargs = dict(budget["kwargs"])
-    if isinstance(kwargs.get("policy_kwargs"), dict):
-        kwargs["policy_kwargs"] = policy_kwargs_string(kwargs["policy_kwargs"])
+    kwargs = dict(budget["kwargs"])  # plain data as in the preset (activation by name): the run's config.yml stays so
     return {
         "n_timesteps": budget["n_timesteps"],
         "policy": budget["policy"],
@@ -114,4 +91,4 @@ def faster_option(env_id: str, algo: str, budget: str | None, prog: str = "train
     )
 
 
-__all__ = ["budget_hyperparams", "env_family", "families_with", "faster_option", "policy_kwargs_string"]
+__all__ = ["budget_hyperparams", "env_family", "families_with", "faster_option"]

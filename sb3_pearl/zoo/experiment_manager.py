@@ -48,6 +48,7 @@ from sb3_pearl.common.threads import mark_num_threads_explicit, num_threads_flag
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.held_out import model_test_tasks, write_meta_test
+from sb3_pearl.experiments.budgets import model_kwargs
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import PROJECT_FLAGS_HELP, parse_project_flags
@@ -205,7 +206,9 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         if isinstance(meta, str):
             meta = parse_dict_string(meta, "meta_test")
         self.meta_test_kwargs.update(meta)
-        return super()._preprocess_hyperparams(hyperparams)
+        # A budget preset's policy_kwargs arrive as the preset's plain dict (activation by name, as config.yml saves
+        # them); the harness's own conversion makes them constructor kwargs. A zoo YAML's string form is rl_zoo3's.
+        return super()._preprocess_hyperparams(model_kwargs(hyperparams))
 
     def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
         """

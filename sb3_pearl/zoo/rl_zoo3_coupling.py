@@ -37,7 +37,8 @@ rl_zoo3's ``__init__``), and the constructor keywords the project passes or read
 ``self.callbacks`` with a ``ProgressBarCallback`` (``-P``) and a ``CheckpointCallback`` (``--save-freq``), ``learn``
 closes ``self.callbacks[0]`` when training stops and treats ``KeyboardInterrupt`` as a stop, ``trial_id`` is tested
 for truth (``--trial-id 0`` needs :class:`~sb3_pearl.zoo.registry.OptunaTrialIndex`), and a ``policy_kwargs``
-string is ``eval``-ed with ``torch.nn`` as ``nn`` (the budget presets' ``policy_kwargs``, :mod:`sb3_pearl.zoo.budget`).
+string is ``eval``-ed with ``torch.nn`` as ``nn`` while a dict is kept (a zoo YAML's ``policy_kwargs`` are strings; a
+budget preset's arrive as a dict, converted by the project's ``_preprocess_hyperparams`` first, :mod:`sb3_pearl.zoo.budget`).
 
 **Called**: ``rl_zoo3.create_test_env`` and ``rl_zoo3.utils.get_model_path`` (``enjoy.py`` finds and wraps a model
 as rl_zoo3's enjoy does), ``rl_zoo3.utils.get_latest_run_id`` (the run-folder number). Since 1.7.0.
