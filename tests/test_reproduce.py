@@ -66,6 +66,26 @@ def run_folder(results_dir: Path, variant: str) -> Path:
 # ----------------------------------------------------------------------------------------------
 # CLI end to end
 # ----------------------------------------------------------------------------------------------
+def test_train_py_and_the_harness_build_and_train_the_same_model(results: Path, tmp_path: Path) -> None:
+    """The two paths from a budget preset to a model (``train.py --budget`` through rl_zoo3's experiment manager, and
+    ``reproduce run`` through ``runner.run_one``) make the same model from the same entry and seed: every setting means
+    the same on both, down to the weights after training (one process, so bit for bit on any CPU; issue 39)."""
+    import torch as th
+
+    from sb3_pearl.zoo import train
+
+    train(["--algo", "pearlplus", "--env", "SafePointGoalMeta-v0", "--budget", "smoke", "--seed", "0", "-f", str(tmp_path)])
+    harness = PEARLPlus.load(run_folder(results, "alpha-0.1") / "model.zip")  # the smoke pearlplus entry, alpha 0.1
+    zoo = PEARLPlus.load(tmp_path / "pearlplus" / "SafePointGoalMeta-v0_1" / "SafePointGoalMeta-v0.zip")
+    assert (harness.num_timesteps, harness._n_updates) == (zoo.num_timesteps, zoo._n_updates) == (400, 17)
+    assert harness.train_tasks == zoo.train_tasks and harness.test_tasks == zoo.test_tasks
+    assert (harness.prior_coef, harness.latent_dim, harness.batch_size) == (zoo.prior_coef, zoo.latent_dim, zoo.batch_size)
+    harness_weights, zoo_weights = harness.policy.state_dict(), zoo.policy.state_dict()
+    assert harness_weights.keys() == zoo_weights.keys()
+    for name, weight in harness_weights.items():
+        assert th.equal(weight, zoo_weights[name]), name
+
+
 def test_run_writes_the_layout(results: Path) -> None:
     import json
 
