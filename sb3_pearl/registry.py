@@ -45,24 +45,45 @@ def algorithm_class(name: str) -> type:
     return classes[name]
 
 
-def constructor_kwargs(algo_class: type) -> set[str]:
+def constructor_parameters(algo_class: type) -> dict[str, inspect.Parameter]:
     """
-    Keyword arguments ``algo_class(...)`` takes, following ``**kwargs`` up the MRO: a constructor that forwards
+    The parameters ``algo_class(...)`` takes, following ``**kwargs`` up the MRO: a constructor that forwards
     ``**kwargs`` (``PEARLPlus`` to ``PEARL``, ``FineTune`` to ``DiscreteSAC``) adds its parent's, and the walk stops at
-    the first one that does not. PEARL's own signature has no PEARL+ setting, so ``pearl`` refuses ``prior_coef``.
+    the first one that does not. Where a subclass restates a parameter, its own (default included) wins.
 
     :param algo_class: an algorithm class
-    :return: the accepted names (without the ones the zoo and the harness set themselves)
+    :return: name -> parameter (``self``, ``*args`` and ``**kwargs`` left out)
     """
-    accepted: set[str] = set()
+    parameters: dict[str, inspect.Parameter] = {}
     for cls in algo_class.__mro__:
         if "__init__" not in vars(cls):
             continue
         params = inspect.signature(vars(cls)["__init__"]).parameters.values()
-        accepted |= {p.name for p in params if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self"}
+        for p in params:
+            if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self":
+                parameters.setdefault(p.name, p)
         if not any(p.kind == p.VAR_KEYWORD for p in params):
             break
-    return accepted - ZOO_SET_KWARGS
+    return parameters
 
 
-__all__ = ["ACTIVATIONS", "ALGORITHM_NAMES", "ZOO_SET_KWARGS", "algorithm_class", "algorithm_classes", "constructor_kwargs"]
+def constructor_kwargs(algo_class: type) -> set[str]:
+    """
+    Keyword arguments ``algo_class(...)`` takes (:func:`constructor_parameters`). PEARL's own signature has no PEARL+
+    setting, so ``pearl`` refuses ``prior_coef``.
+
+    :param algo_class: an algorithm class
+    :return: the accepted names (without the ones the zoo and the harness set themselves)
+    """
+    return set(constructor_parameters(algo_class)) - ZOO_SET_KWARGS
+
+
+__all__ = [
+    "ACTIVATIONS",
+    "ALGORITHM_NAMES",
+    "ZOO_SET_KWARGS",
+    "algorithm_class",
+    "algorithm_classes",
+    "constructor_kwargs",
+    "constructor_parameters",
+]

@@ -83,15 +83,14 @@ def test_algorithm_page_examples_run(page: str, tmp_path: Path, monkeypatch: pyt
 @pytest.mark.parametrize("page", ALGORITHM_PAGES)
 def test_algorithm_page_parameters_are_the_constructors(page: str) -> None:
     """The Parameters section's ``Class(...)`` signatures name only real parameters, with their real defaults."""
-    import inspect
-
     import sb3_pearl
+    from sb3_pearl.registry import constructor_parameters
 
     section = _section((ROOT / page).read_text(), "Parameters")
     signatures = re.findall(r"`(PEARL|PEARLPlus|FineTune|MAML)\((.*?)\)`", section, flags=re.S)
     assert signatures, f"{page}: no constructor signature in its Parameters section"
     for name, arguments in signatures:
-        parameters = inspect.signature(getattr(sb3_pearl, name).__init__).parameters
+        parameters = constructor_parameters(getattr(sb3_pearl, name))  # **kwargs followed to the parent's
         documented = re.findall(r"(\w+)=([^,]+)", arguments.replace("\n", " "))
         assert documented, name
         for key, value in documented:
