@@ -696,13 +696,37 @@ def test_a_group_holds_the_seeds_its_experiment_declares(tmp_path: Path) -> None
     for seed in (0, 1, 2, 3):  # merge-premise declares seeds 0-1; merge-table1 runs 2-3 of its PEARL into its folder
         write("merge-premise", "pearl-fixed-entropy", seed)
     write("merge-table1", "pearlplus-fixed-entropy", 0)
-    write("merge-table3", "alpha-0-fixed-entropy", 5)  # a seed merge-table3 does not declare
+    write("merge-table3", "alpha-0.01-fixed-entropy", 5)  # a seed merge-table3 does not declare for alpha 0.01 ...
+    write("merge-table3", "alpha-0-fixed-entropy", 5)  # ... but does for alpha 0 (variant_seeds: Table I's 10 seeds)
     groups = load_groups(tmp_path)
     assert sorted(groups[("merge-premise", "cpu", "highway-merge")]["pearl-fixed-entropy"]) == [0, 1]
     assert sorted(groups[("merge-table1", "cpu", "highway-merge")]["pearl-fixed-entropy"]) == [0, 1, 2, 3]
-    # merge-table3's alpha-0 run (seed 5) is left out; the PEARL+ run it shares with merge-table1 stays
+    # merge-table3's alpha-0.01 run (seed 5) is left out; alpha 0's seed 5 and the PEARL+ run shared with merge-table1 stay
     table3 = groups[("merge-table3", "cpu", "highway-merge")]
-    assert list(table3) == ["pearlplus-fixed-entropy"] and list(table3["pearlplus-fixed-entropy"]) == [0]
+    assert sorted(table3) == ["alpha-0-fixed-entropy", "pearlplus-fixed-entropy"]
+    assert list(table3["pearlplus-fixed-entropy"]) == [0] and list(table3["alpha-0-fixed-entropy"]) == [5]
+
+
+def test_a_variant_may_declare_its_own_seeds() -> None:
+    """Issue 36 took Table III's alpha 0 and 0.1 rows and Table II's 300-node row (beside PEARL) to Table I's 10
+    seeds: a run without --seeds plans each variant's declared seeds, --seeds still names them for every variant."""
+    from sb3_pearl.reproduce.scheduler import plan_runs
+
+    table2, table3 = get_experiment("merge-table2"), get_experiment("merge-table3")
+    assert table3.seeds_of("alpha-0-fixed-entropy") == tuple(range(10)) == table3.seeds_of("pearlplus-fixed-entropy")
+    assert table3.seeds_of("alpha-1-fixed-entropy") == (0, 1, 2, 3)
+    assert table2.seeds_of("pearlplus-300-fixed-entropy") == tuple(range(10)) == table2.seeds_of("pearl-fixed-entropy")
+    assert table2.seeds_of("pearlplus-100-fixed-entropy") == (0, 1, 2)
+    runs = plan_runs(table3, "cpu", None, None, ["alpha-0-fixed-entropy", "alpha-5-fixed-entropy"])
+    assert [(run.variant, run.seed) for run in runs] == [("alpha-0-fixed-entropy", s) for s in range(10)] + [
+        ("alpha-5-fixed-entropy", s) for s in range(4)
+    ]
+    runs = plan_runs(table3, "cpu", [7], None, ["alpha-0-fixed-entropy", "alpha-5-fixed-entropy"])
+    assert [(run.variant, run.seed) for run in runs] == [("alpha-0-fixed-entropy", 7), ("alpha-5-fixed-entropy", 7)]
+    with pytest.raises(ValueError, match="variant_seeds names unknown variants"):
+        dataclasses.replace(table3, variant_seeds={"alpha-7": (0,)})
+    with pytest.raises(ValueError, match="eval_seed 10001 must differ"):
+        dataclasses.replace(table3, variant_seeds={"alpha-0-fixed-entropy": (0, 10001)})
 
 
 def test_remeasure_repeats_the_runs_own_meta_test_and_adds_draws(results: Path, tmp_path: Path) -> None:

@@ -7,7 +7,9 @@ PEARL's k = 0 crash rate; where the encoder carries task information and PEARL's
 merge row of Table I again at that setting (PEARL and PEARL+, 4 seeds, with the shift column), then Table II's
 ablation and Table III's alpha sweep on merge (3 seeds each). Table III was extended to 4 seeds (the paper's count:
 "each mean and standard deviation is calculated on 4 independent runs") once its 3-seed verdicts, reported in
-docs/results.md, were in; Table II's fourth seed is not run yet.
+docs/results.md, were in; Table II's fourth seed is not run yet. Issue 36 ("if compute is left") takes the rows
+next to Table I's to its 10 seeds: Table III's alpha 0 (alpha 0.1 is Table I's PEARL+ already) and Table II's
+300-node PEARL+ beside PEARL (``variant_seeds``); the other rows keep their seeds.
 
 The three experiments below are those tables' merge variants with ``ent_coef=1.0`` and ``reward_scale=5.0`` added to
 their overrides (variant names get the suffix ``-fixed-entropy``), with the tables' own paper cells and claims renamed
@@ -49,6 +51,7 @@ def merge_at_reference_entropy(
     seeds: Sequence[int],
     shared: Mapping[str, str],
     same_as: Mapping[str, Variant] | None = None,
+    variant_seeds: Mapping[str, Sequence[int]] | None = None,
 ) -> Experiment:
     """
     ``base``'s Highway-Merge variants ``variant_names`` at the reference's entropy setting, with ``base``'s merge paper
@@ -61,6 +64,7 @@ def merge_at_reference_entropy(
     :param shared: new variant name -> the experiment that owns its runs
     :param same_as: base variant name -> the variant of another of these experiments that declares the same model
         (its runs serve both; e.g. Table III's alpha 0.1 is Table I's PEARL+)
+    :param variant_seeds: base variant name -> its model seeds, where they are not ``seeds``
     :return: the experiment
     """
     same_as = dict(same_as or {})
@@ -89,6 +93,7 @@ def merge_at_reference_entropy(
         families=(HIGHWAY_MERGE,),
         variants=variants,
         seeds=tuple(seeds),
+        variant_seeds={rename[base_name]: tuple(s) for base_name, s in (variant_seeds or {}).items()},
         budget=base.budget,
         eval_seed=MERGE_PREMISE.eval_seed,
         reference=rename[variant_names[0]],
@@ -101,9 +106,15 @@ def merge_at_reference_entropy(
 PEARL_RUNS = {f"pearl{SUFFIX}": MERGE_PREMISE.name}  # merge-premise's PEARL at this setting
 
 # 10 seeds since issue 36 (seeds 0-3 before it, 4-9 added; the rules: sb3_pearl.experiments.table1_rules)
-MERGE_TABLE1 = merge_at_reference_entropy(TABLE1, "merge-table1", ("pearl", "pearlplus"), tuple(range(10)), PEARL_RUNS)
+TABLE1_SEEDS = tuple(range(10))
+MERGE_TABLE1 = merge_at_reference_entropy(TABLE1, "merge-table1", ("pearl", "pearlplus"), TABLE1_SEEDS, PEARL_RUNS)
 MERGE_TABLE2 = merge_at_reference_entropy(
-    TABLE2, "merge-table2", ("pearl", "pearlplus-wo", "pearlplus-300", "pearlplus-100"), (0, 1, 2), PEARL_RUNS
+    TABLE2,
+    "merge-table2",
+    ("pearl", "pearlplus-wo", "pearlplus-300", "pearlplus-100"),
+    (0, 1, 2),
+    PEARL_RUNS,
+    variant_seeds={"pearl": TABLE1_SEEDS, "pearlplus-300": TABLE1_SEEDS},  # issue 36: the 300-node row at 10 seeds
 )
 # alpha 0.1 is Table I's PEARL+ (same model): its runs are merge-table1's
 PEARLPLUS = MERGE_TABLE1.variant(f"pearlplus{SUFFIX}")
@@ -114,4 +125,5 @@ MERGE_TABLE3 = merge_at_reference_entropy(
     (0, 1, 2, 3),
     {PEARLPLUS.name: MERGE_TABLE1.name},
     same_as={"alpha-0.1": PEARLPLUS},
+    variant_seeds={"alpha-0": TABLE1_SEEDS, "alpha-0.1": TABLE1_SEEDS},  # issue 36: alpha 0 and 0.1 at 10 seeds
 )

@@ -263,6 +263,8 @@ class Experiment:
     :param families: the task families
     :param variants: the algorithm variants (each runs on every family)
     :param seeds: default model seeds
+    :param variant_seeds: variants declared with other seeds than ``seeds``, ``{variant: seeds}`` (issue 36 took
+        two rows of Tables II and III to Table I's 10 seeds and left the others at theirs); see :meth:`seeds_of`
     :param budget: default budget preset
     :param eval_seed: the fixed meta-test seed: the test tasks are ``sample_tasks(n_tasks, eval_seed)``
         of the family env, the same for every variant and model seed (common random numbers); also
@@ -290,6 +292,7 @@ class Experiment:
     families: tuple[Family, ...]
     variants: tuple[Variant, ...]
     seeds: tuple[int, ...] = (0, 1, 2, 3)
+    variant_seeds: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
     budget: str = "cpu"
     eval_seed: int = 1_000_003
     reference: str = "pearl"
@@ -324,7 +327,10 @@ class Experiment:
                 f"experiment {self.name}: after_selection names shared variants {owned_elsewhere}: their owner plans "
                 "them whatever this experiment's rule selects"
             )
-        if self.eval_seed in self.seeds:
+        unknown = sorted(set(self.variant_seeds) - variants)
+        if unknown:
+            raise ValueError(f"experiment {self.name}: variant_seeds names unknown variants {unknown}")
+        if any(self.eval_seed in self.seeds_of(v) for v in variants):
             raise ValueError(f"experiment {self.name}: eval_seed {self.eval_seed} must differ from the model seeds")
         items: list[PaperCell | Claim] = [*self.paper, *self.claims]
         for item in items:
@@ -334,6 +340,10 @@ class Experiment:
                     f"experiment {self.name}: {type(item).__name__} {item} names an unknown family or variant "
                     f"(families {sorted(families)}, variants {sorted(variants)})"
                 )
+
+    def seeds_of(self, variant: str) -> tuple[int, ...]:
+        """The model seeds declared for ``variant``: its own (``variant_seeds``), else the experiment's."""
+        return tuple(self.variant_seeds.get(variant, self.seeds))
 
     def owner(self, variant: str) -> str:
         """The experiment whose results folder holds the runs of ``variant`` (this one, unless it is shared)."""

@@ -112,12 +112,14 @@ def _shared_and_declared(groups: dict[tuple[str, str, str], Group]) -> dict[tupl
                 if owner == experiment_name and variant in group and (other.name, budget, family) in groups:
                     groups[(other.name, budget, family)][variant] = group[variant]
 
-    def declared(experiment_name: str, seeds: dict[int, dict[str, Any]]) -> dict[int, dict[str, Any]]:
+    def declared(experiment_name: str, variant: str, seeds: dict[int, dict[str, Any]]) -> dict[int, dict[str, Any]]:
         experiment = EXPERIMENTS.get(experiment_name)
-        return dict(seeds) if experiment is None else {seed: r for seed, r in seeds.items() if seed in experiment.seeds}
+        if experiment is None:
+            return dict(seeds)
+        return {seed: r for seed, r in seeds.items() if seed in experiment.seeds_of(variant)}
 
     kept = {
-        key: {variant: runs for variant, seeds in group.items() if (runs := declared(key[0], seeds))}
+        key: {variant: runs for variant, seeds in group.items() if (runs := declared(key[0], variant, seeds))}
         for key, group in sorted(groups.items())
     }
     return {key: group for key, group in kept.items() if group}

@@ -135,6 +135,8 @@ def _list() -> None:
         print(f"  families: {', '.join(f.name for f in experiment.families)}")
         print(f"  variants: {', '.join(f'{v.name} ({v.label})' for v in experiment.variants)}")
         print(f"  default seeds {list(experiment.seeds)}, budget {experiment.budget}, eval seed {experiment.eval_seed}")
+        for variant, seeds in experiment.variant_seeds.items():
+            print(f"  seeds of {variant}: {list(seeds)}")
     print(f"budget presets: {', '.join(PRESETS)} (sb3_pearl/config/presets/)")
 
 
@@ -168,7 +170,7 @@ def _run(args: argparse.Namespace) -> int:
 
     experiment = get_experiment(args.experiment)
     budget = args.budget or experiment.budget
-    seeds = parse_seeds(args.seeds) if args.seeds is not None else list(experiment.seeds)
+    seeds = parse_seeds(args.seeds) if args.seeds is not None else None
     given = [name for name in RAY_OPTIONS if getattr(args, name) is not None]
     if args.backend != "ray" and given:
         options = ", ".join("--" + name.replace("_", "-") for name in given)
@@ -238,7 +240,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not os.path.isdir(args.results_dir):
                 raise ValueError(f"--results-dir {args.results_dir} does not exist or is not a folder: no run to report on")
             experiment = get_experiment(args.experiment)
-            seeds = parse_seeds(args.seeds) if args.seeds is not None else list(experiment.seeds)
+            seeds = parse_seeds(args.seeds) if args.seeds is not None else None
             budget = args.budget or experiment.budget
             print(format_status(run_status(experiment, budget, seeds, args.results_dir, args.family, args.variants)))
             return 0

@@ -334,7 +334,7 @@ def _check_options(
 def run_experiment_ray(
     experiment: Experiment,
     budget_preset: str,
-    seeds: Sequence[int],
+    seeds: Sequence[int] | None,
     results_dir: str | os.PathLike[str],
     jobs: int | None = None,
     families: Sequence[str] | None = None,
@@ -353,7 +353,7 @@ def run_experiment_ray(
 
     :param experiment: the experiment
     :param budget_preset: ``smoke``, ``cpu`` or ``paper``
-    :param seeds: model seeds
+    :param seeds: model seeds (None: each variant's declared seeds)
     :param results_dir: root of the results layout (on the driver)
     :param jobs: runs at a time at most (None: as many as the cluster's resources fit)
     :param families: family names (None: all)

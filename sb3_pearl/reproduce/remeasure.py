@@ -168,7 +168,7 @@ def remeasure_experiments(
         experiment = get_experiment(name)
         for family in experiment.families:
             for variant in experiment.variants:
-                for seed in experiment.seeds if seeds is None else seeds:
+                for seed in experiment.seeds_of(variant.name) if seeds is None else seeds:
                     key = RunKey(experiment.owner(variant.name), family.name, variant.name, seed)
                     folders[run_dir(root, key)] = None
     written: list[Path] = []

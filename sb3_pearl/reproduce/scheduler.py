@@ -71,7 +71,7 @@ class RunSummary:
 def plan_runs(
     experiment: Experiment,
     budget_preset: str,
-    seeds: Sequence[int],
+    seeds: Sequence[int] | None,
     families: Sequence[str] | None = None,
     variants: Sequence[str] | None = None,
 ) -> list[RunKey]:
@@ -80,7 +80,7 @@ def plan_runs(
 
     :param experiment: the experiment
     :param budget_preset: the budget preset
-    :param seeds: model seeds
+    :param seeds: model seeds (None: each variant's declared seeds, :meth:`Experiment.seeds_of`)
     :param families: family names (None: all of the experiment's)
     :param variants: variant names (None: all)
     :return: the runs, family by family, variant by variant, seed by seed
@@ -88,21 +88,23 @@ def plan_runs(
     # a family or variant named twice is one run, not two (dict.fromkeys keeps the first occurrence's order)
     chosen_families = [experiment.family(n) for n in dict.fromkeys(families)] if families else list(experiment.families)
     chosen_variants = [experiment.variant(n) for n in dict.fromkeys(variants)] if variants else list(experiment.variants)
-    seeds = list(dict.fromkeys(seeds))
-    if not seeds:
-        raise ValueError("no seeds to run")
-    bad = [s for s in seeds if s == experiment.eval_seed or s < 0]
-    if bad:
-        raise ValueError(
-            f"seeds {bad} are not allowed: model seeds must be >= 0 and differ from eval_seed {experiment.eval_seed}"
-        )
+    if seeds is not None:
+        seeds = list(dict.fromkeys(seeds))
+        if not seeds:
+            raise ValueError("no seeds to run")
+        bad = [s for s in seeds if s == experiment.eval_seed or s < 0]
+        if bad:
+            raise ValueError(
+                f"seeds {bad} are not allowed: model seeds must be >= 0 and differ from eval_seed {experiment.eval_seed}"
+            )
     runs: list[RunKey] = []
     for family in chosen_families:
         for variant in chosen_variants:
             budget = load_budget(budget_preset, family.budget_name, variant.algo)
             run_kwargs(budget, variant, f"{experiment.name} {family.name} (preset {budget_preset})")
+            chosen_seeds = experiment.seeds_of(variant.name) if seeds is None else seeds
             # a shared variant's runs live in (and are run as part of) the experiment that owns them
-            runs.extend(RunKey(experiment.owner(variant.name), family.name, variant.name, seed) for seed in seeds)
+            runs.extend(RunKey(experiment.owner(variant.name), family.name, variant.name, seed) for seed in chosen_seeds)
     return runs
 
 
@@ -203,7 +205,7 @@ def child_command(key: RunKey, budget_preset: str, results_dir: str | os.PathLik
 def run_experiment(
     experiment: Experiment,
     budget_preset: str,
-    seeds: Sequence[int],
+    seeds: Sequence[int] | None,
     results_dir: str | os.PathLike[str],
     jobs: int = 1,
     families: Sequence[str] | None = None,
@@ -217,7 +219,7 @@ def run_experiment(
 
     :param experiment: the experiment
     :param budget_preset: ``smoke``, ``cpu`` or ``paper``
-    :param seeds: model seeds
+    :param seeds: model seeds (None: each variant's declared seeds)
     :param results_dir: root of the results layout
     :param jobs: runs at a time
     :param families: family names (None: all)

@@ -56,7 +56,7 @@ def _finished_cpu(result: dict[str, Any]) -> tuple[float, float]:
 def run_status(
     experiment: Experiment,
     budget_preset: str,
-    seeds: Sequence[int],
+    seeds: Sequence[int] | None,
     results_dir: str | os.PathLike[str],
     families: Sequence[str] | None = None,
     variants: Sequence[str] | None = None,
@@ -66,7 +66,7 @@ def run_status(
 
     :param experiment: the experiment
     :param budget_preset: the budget preset
-    :param seeds: model seeds
+    :param seeds: model seeds (None: each variant's declared seeds)
     :param results_dir: root of the results layout
     :param families: family names (None: all)
     :param variants: variant names (None: all)
