@@ -37,7 +37,7 @@ from sb3_pearl.common.checks import (
     check_tau,
     is_integer,
 )
-from sb3_pearl.common.networks import CategoricalActor, LatentCritic
+from sb3_pearl.common.networks import CategoricalActor, LatentCritic, fast_optimizer_kwargs
 from sb3_pearl.common.soft_actor_critic import (
     critic_regression_loss,
     entropy_log_prob,
@@ -304,6 +304,14 @@ class DiscreteSAC(SAC):
                 self.target_entropy = DISCRETE_TARGET_ENTROPY_SHARE * math.log(int(self.action_space.n))  # type: ignore[attr-defined]
         elif issubclass(self.policy_class, DiscreteSACPolicy):
             raise ValueError(f"DiscreteSACPolicy needs a Discrete action space, got {self.action_space}")
+        # Adam in torch's fused form unless the user chose, as PEARL's policy does (the same update in one kernel);
+        # a copy, so the caller's dict is not changed. A model saved before this keeps its saved optimizer groups.
+        optimizer_class = self.policy_kwargs.get("optimizer_class", th.optim.Adam)
+        user_kwargs = self.policy_kwargs.get("optimizer_kwargs") or {}
+        self.policy_kwargs = {
+            **self.policy_kwargs,
+            "optimizer_kwargs": fast_optimizer_kwargs(optimizer_class, user_kwargs, self.device),
+        }
         super()._setup_model()
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
