@@ -138,3 +138,30 @@ def test_reductions_name_what_the_cpu_runs_cut_from_the_paper_budget() -> None:
     assert text.startswith("env steps 500,000 (paper 1,500,000), actor and critics 2x128 (paper 3x300)")
     assert "RL rows a gradient step 8 tasks x 128 (paper 16 tasks x 256)" in text and "encoder 2x128 (paper 3x200)" in text
     assert text.endswith("gradient steps an iteration 1200 (paper 2000)")
+
+
+def test_tables_2_and_3_show_the_remeasured_numbers_beside_their_own(tmp_path: Path) -> None:
+    """Issue 36, run 1: the report shows Tables II and III's rows re-measured beside the runs' own numbers, paired
+    with the table's reference on common seeds; a finished run without the record is named, not mixed in."""
+    from sb3_pearl.reproduce.remeasured_tables import remeasured_section
+
+    # Table III: alpha 0 re-measured k = 0 at 8%, 6%, 10% (own meta-test 20%); alpha 0.01 at 1%, 2% on seeds 0-1
+    # -> its paired differences -7, -4 points: mean -5.5, sd 2.121, t(0.975, 1) = 12.706 -> half-width 19.06.
+    for seed, rate in enumerate((0.08, 0.06, 0.10)):
+        write_run(tmp_path, "merge-table3", "highway-merge", "alpha-0-fixed-entropy", seed,
+                  summary(0.2, 0.0, -8.0), summary(rate, 0.0, -7.0))  # fmt: skip
+    for seed, rate in enumerate((0.01, 0.02)):
+        write_run(tmp_path, "merge-table3", "highway-merge", "alpha-0.01-fixed-entropy", seed,
+                  summary(0.0, 0.0, -8.0), summary(rate, 0.0, -7.5))  # fmt: skip
+    write_run(tmp_path, "merge-table3", "highway-merge", "alpha-5-fixed-entropy", 0, summary(0.0, 0.0, -8.0))  # no record
+    lines = remeasured_section(tmp_path)
+    text = "\n".join(lines)
+    assert "Table III on Highway-Merge" in text and "Table II on" not in text  # no Table II run: no table
+    alpha0 = next(line for line in lines if line.startswith("| PEARL+ (alpha 0),"))
+    # 3 seeds; mean 8.0, sd 2.0, half-width 4.303 * 2 / sqrt(3) = 4.97 -> [3.0, 13.0]; own 20.0 on every seed
+    assert alpha0.split(" | ")[1:5] == ["3", "8.0 [3.0, 13.0]", "20.0 [20.0, 20.0]", "-7.00 [-7.00, -7.00]"]
+    assert alpha0.endswith("| reference |")
+    alpha001 = next(line for line in lines if line.startswith("| PEARL+ (alpha 0.01)"))
+    assert alpha001.endswith("| -5.5 [-24.6, 13.6] (2 seeds) |")
+    assert "Finished but not re-measured yet (left out above): alpha-5-fixed-entropy seed(s) [0]." in text
+    assert remeasured_section(tmp_path / "nothing") == []

@@ -300,6 +300,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     :return: the markdown
     """
     from sb3_pearl.reproduce.figures import plot_curves, plot_decisions, plot_group, plot_prior_selection, plot_seeds
+    from sb3_pearl.reproduce.remeasured_tables import remeasured_section
     from sb3_pearl.reproduce.table1_verdicts import decide, decision_section
 
     groups = load_groups(results_dir)
@@ -319,6 +320,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         out += decision_section(decisions)
         if plot_decisions(decisions, Path(figures_dir) / "table1_decided.png"):
             out += [f"![k = 0 violation rate per seed, Table I decided]({figures_link.rstrip('/')}/table1_decided.png)", ""]
+    out += remeasured_section(results_dir)
     for (experiment_name, budget, family), group in groups.items():
         experiment = EXPERIMENTS.get(experiment_name)
         if experiment is None:
