@@ -361,19 +361,20 @@ def test_make_demo_as_is(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
     assert time.time() - start < 300
 
 
-def test_the_headline_holds_the_decided_highway_merge_numbers() -> None:
-    """The README's headline (and the PEARL page's copy) holds Table I's Highway-Merge verdict as the rules compute it
-    from the committed results: the paired k = 0 and k = 5 intervals and the verdict words."""
+@pytest.mark.parametrize("family, row_start", [("highway-merge", "| Highway-Merge"), ("walker2d-vel-long", "| Walker2D-vel")])
+def test_the_headline_holds_the_decided_numbers(family: str, row_start: str) -> None:
+    """The README's headline (and the PEARL page's copy) holds Table I's verdict on each decided family as the rules
+    compute it from the committed results: the paired k = 0 and k = 5 intervals and the verdict words."""
     from sb3_pearl.reproduce.table1_verdicts import decide_family
 
-    decision = decide_family("highway-merge", demo.default_results_dir())
+    decision = decide_family(family, demo.default_results_dir())
     assert decision.prior_interval is not None and decision.adapted_interval is not None
     prior, adapted = decision.prior_interval, decision.adapted_interval
     prior_text = f"{100 * prior.mean:+.1f} points [{100 * prior.low:+.1f}, {100 * prior.high:+.1f}]".lstrip("+")
     adapted_text = f"{adapted.mean:+.2f} [{adapted.low:+.2f}, {adapted.high:+.2f}]".lstrip("+")
     readme = README.read_text()
     headline = readme[readme.index("<!-- headline:begin") : readme.index("<!-- headline:end")]
-    row = next(line for line in headline.splitlines() if line.startswith("| Highway-Merge"))
+    row = next(line for line in headline.splitlines() if line.startswith(row_start))
     for text in (row, (ROOT / "docs" / "pearl.md").read_text()):
         assert prior_text in text and adapted_text in text and f"margin -{decision.adapted_margin:.2f}" in text
     verdict = row.rsplit("|", 2)[1]
