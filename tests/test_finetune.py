@@ -361,7 +361,8 @@ def test_adam_is_fused_by_default_and_the_same_update(discrete: bool, tmp_path: 
     env = make_discrete_env() if discrete else "PointGoalMeta-v0"
     policy_kwargs: dict[str, Any] = dict(net_arch=[32, 32])
     fast = tiny_model(env, learn=300, policy_kwargs=policy_kwargs)
-    assert "optimizer_kwargs" not in policy_kwargs  # the caller's dict (SB3's own use_sde entry aside)
+    assert "optimizer_kwargs" not in policy_kwargs  # the caller's dict (SB3's own use_sde entry aside) ...
+    assert "optimizer_kwargs" not in fast.policy_kwargs  # ... and the saved ones: `load` compares them with the user's
     slow = tiny_model(env, learn=300, policy_kwargs=dict(net_arch=[32, 32], optimizer_kwargs=dict(foreach=False)))
 
     def optimizers(model: FineTune) -> list[th.optim.Optimizer]:

@@ -727,6 +727,9 @@ def test_a_variant_may_declare_its_own_seeds() -> None:
         dataclasses.replace(table3, variant_seeds={"alpha-7": (0,)})
     with pytest.raises(ValueError, match="eval_seed 10001 must differ"):
         dataclasses.replace(table3, variant_seeds={"alpha-0-fixed-entropy": (0, 10001)})
+    for bad in ((), (1, 1), (-1, 2)):  # nothing to run, one run twice, a folder the report's seed pattern skips
+        with pytest.raises(ValueError, match="must be distinct integers >= 0, at least one"):
+            dataclasses.replace(table3, variant_seeds={"alpha-0-fixed-entropy": bad})
 
 
 def test_remeasure_repeats_the_runs_own_meta_test_and_adds_draws(results: Path, tmp_path: Path) -> None:

@@ -159,7 +159,7 @@ def test_tables_2_and_3_show_the_remeasured_numbers_beside_their_own(tmp_path: P
     assert "Table III on Highway-Merge" in text and "Table II on" not in text  # no Table II run: no table
     alpha0 = next(line for line in lines if line.startswith("| PEARL+ (alpha 0),"))
     # 3 seeds; mean 8.0, sd 2.0, half-width 4.303 * 2 / sqrt(3) = 4.97 -> [3.0, 13.0]; own 20.0 on every seed
-    assert alpha0.split(" | ")[1:5] == ["3", "8.0 [3.0, 13.0]", "20.0 [20.0, 20.0]", "-7.00 [-7.00, -7.00]"]
+    assert alpha0.split(" | ")[1:5] == ["3 of 10", "8.0 [3.0, 13.0]", "20.0 [20.0, 20.0]", "-7.00 [-7.00, -7.00]"]
     assert alpha0.endswith("| reference |")
     alpha001 = next(line for line in lines if line.startswith("| PEARL+ (alpha 0.01)"))
     assert alpha001.endswith("| -5.5 [-24.6, 13.6] (2 seeds) |")

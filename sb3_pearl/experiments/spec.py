@@ -330,6 +330,13 @@ class Experiment:
         unknown = sorted(set(self.variant_seeds) - variants)
         if unknown:
             raise ValueError(f"experiment {self.name}: variant_seeds names unknown variants {unknown}")
+        for name in sorted(variants):
+            seeds = self.seeds_of(name)
+            if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+                raise ValueError(
+                    f"experiment {self.name}: the seeds of {name} must be distinct integers >= 0, at least one; got "
+                    f"{list(seeds)}"
+                )
         if any(self.eval_seed in self.seeds_of(v) for v in variants):
             raise ValueError(f"experiment {self.name}: eval_seed {self.eval_seed} must differ from the model seeds")
         items: list[PaperCell | Claim] = [*self.paper, *self.claims]

@@ -304,15 +304,17 @@ class DiscreteSAC(SAC):
                 self.target_entropy = DISCRETE_TARGET_ENTROPY_SHARE * math.log(int(self.action_space.n))  # type: ignore[attr-defined]
         elif issubclass(self.policy_class, DiscreteSACPolicy):
             raise ValueError(f"DiscreteSACPolicy needs a Discrete action space, got {self.action_space}")
-        # Adam in torch's fused form unless the user chose, as PEARL's policy does (the same update in one kernel);
-        # a copy, so the caller's dict is not changed. A model saved before this keeps its saved optimizer groups.
-        optimizer_class = self.policy_kwargs.get("optimizer_class", th.optim.Adam)
-        user_kwargs = self.policy_kwargs.get("optimizer_kwargs") or {}
-        self.policy_kwargs = {
-            **self.policy_kwargs,
-            "optimizer_kwargs": fast_optimizer_kwargs(optimizer_class, user_kwargs, self.device),
-        }
-        super()._setup_model()
+        # Adam in torch's fused form unless the user chose, as PEARL's policy does (the same update in one kernel), for
+        # building the policy only: policy_kwargs keep what the user gave (they are saved, and `load` compares them).
+        # A model saved before this keeps its saved optimizer groups (load_state_dict restores their flags).
+        given = self.policy_kwargs
+        optimizer_class = given.get("optimizer_class", th.optim.Adam)
+        fast = fast_optimizer_kwargs(optimizer_class, given.get("optimizer_kwargs") or {}, self.device)
+        self.policy_kwargs = {**given, "optimizer_kwargs": fast}
+        try:
+            super()._setup_model()
+        finally:
+            self.policy_kwargs = given
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         """``gradient_steps`` soft actor-critic steps: SAC's for Box, soft discrete SAC's for Discrete."""

@@ -44,7 +44,11 @@ def _add_plan_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--family", nargs="+", default=None, help="families of the experiment (default: all)")
     parser.add_argument("--variants", nargs="+", default=None, help="variants of the experiment (default: all)")
     parser.add_argument("--budget", default=None, choices=PRESETS, help="budget preset (default: the experiment's, cpu)")
-    parser.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 or 0-3,7 (default: the experiment's)")
+    parser.add_argument(
+        "--seeds",
+        default=None,
+        help="model seeds: 0-3, 0,2,5 or 0-3,7, for every chosen variant (default: each variant's declared seeds)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -101,10 +101,12 @@ def remeasured_table(experiment_name: str, results_dir: str | os.PathLike[str]) 
         else:
             diffs = paired_differences(k0, reference_k0)
             paired = f"{_cell(diffs, 100)} ({len(diffs)} seeds)" if diffs else "-"
+        declared = len(experiment.seeds_of(variant.name))
+        own_k0 = _values(mine, 0, "violation_rate", own=True)
+        returns = [_cell(_values(mine, ADAPTED_K, "return_mean", own=own), digits=2) for own in (False, True)]
         lines.append(
-            f"| {variant.label} | {len(mine)} | {_cell(k0, 100)} | {_cell(_values(mine, 0, 'violation_rate', own=True), 100)} "
-            f"| {_cell(_values(mine, ADAPTED_K, 'return_mean', own=False), digits=2)} "
-            f"| {_cell(_values(mine, ADAPTED_K, 'return_mean', own=True), digits=2)} | {paired} |"
+            f"| {variant.label} | {len(mine)} of {declared} | {_cell(k0, 100)} | {_cell(own_k0, 100)} "
+            f"| {returns[0]} | {returns[1]} | {paired} |"
         )
     lacking = [f"{name} seed(s) {seeds}" for name, seeds in missing.items() if seeds]
     if lacking:
@@ -126,8 +128,10 @@ def remeasured_section(results_dir: str | os.PathLike[str]) -> list[str]:
         "",
         f"Each finished run's model meta-tested again on Table I's design ({design}), without retraining "
         "(`python -m sb3_pearl.reproduce remeasure`); the run's own meta-test (20 tasks x 10 prior draws) beside it "
-        "on the same seeds. Means over seeds with 95% t intervals; the last column pairs each row with the table's "
-        "reference on the seeds both have. The rows' own tables below keep the runs' own numbers.",
+        "on the same seeds. Means over seeds with 95% t intervals; the seeds column counts the re-measured runs of "
+        "the seeds the row declares. Rows with different seeds are not paired down a column: the last column pairs "
+        "each row with the table's reference on the seeds both have. The rows' own tables below keep the runs' own "
+        "numbers.",
         "",
     ]
     return header + tables

@@ -332,10 +332,15 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
             if c is not None
         ]
         seeds = sorted({seed for results in group.values() for seed in results})
+        own_seeds = (  # rows that declare their own seeds: each row's, where they differ
+            " (by row: " + "; ".join(f"{_label(experiment, name)} {sorted(runs)}" for name, runs in group.items()) + ")"
+            if experiment.variant_seeds
+            else ""
+        )
         out += [
             f"### {experiment.title}: {family} (budget `{budget}`)",
             "",
-            f"{experiment.description}. Seeds {seeds}; test tasks drawn with eval seed {experiment.eval_seed} "
+            f"{experiment.description}. Seeds {seeds}{own_seeds}; test tasks drawn with eval seed {experiment.eval_seed} "
             "(the same for every variant and seed).",
             "",
             *results_table(experiment, family, group, claims),
