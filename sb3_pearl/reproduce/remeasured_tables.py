@@ -12,14 +12,14 @@ never mixed in.
 
 from __future__ import annotations
 
-import math
 import os
 from typing import Any
 
 from sb3_pearl.experiments import get_experiment
 from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE
 from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, run_dir
-from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval
+from sb3_pearl.reproduce.report import format_interval
+from sb3_pearl.reproduce.stats import paired_differences, t_interval
 from sb3_pearl.reproduce.table1_verdicts import RunNumbers, load_run
 
 FAMILY = "highway-merge"
@@ -62,17 +62,8 @@ def _values(runs: dict[int, RunNumbers], k: int, key: str, own: bool) -> dict[in
     return out
 
 
-def _mean_interval(interval: Interval, scale: float, digits: int) -> str:
-    if interval.n == 0:
-        return "-"
-    text = f"{scale * interval.mean:.{digits}f}"
-    if interval.n >= 2 and math.isfinite(interval.low):
-        text += f" [{scale * interval.low:.{digits}f}, {scale * interval.high:.{digits}f}]"
-    return text
-
-
 def _cell(values: dict[int, float], scale: float = 1.0, digits: int = 1) -> str:
-    return _mean_interval(t_interval(list(values.values())), scale, digits) if values else "-"
+    return format_interval(t_interval(list(values.values())), digits, scale) if values else "-"
 
 
 def remeasured_table(experiment_name: str, results_dir: str | os.PathLike[str]) -> list[str]:
