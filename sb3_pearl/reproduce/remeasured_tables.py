@@ -17,8 +17,8 @@ from typing import Any
 
 from sb3_pearl.experiments import get_experiment
 from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE
+from sb3_pearl.reproduce.formatting import format_interval
 from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, run_dir
-from sb3_pearl.reproduce.report import format_interval
 from sb3_pearl.reproduce.stats import paired_differences, t_interval
 from sb3_pearl.reproduce.table1_verdicts import RunNumbers, load_run
 

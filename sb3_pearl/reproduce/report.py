@@ -31,6 +31,8 @@ from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Claim, Experiment, resolve_k
 from sb3_pearl.reproduce.cells import Group, cell_stats, last_k, load_groups, load_partway_curves, seed_values
 from sb3_pearl.reproduce.curve import curve_table
+from sb3_pearl.reproduce.formatting import format_interval
+from sb3_pearl.reproduce.formatting import format_number as _num
 from sb3_pearl.reproduce.layout import find_results
 from sb3_pearl.reproduce.prior_report import outcome_section, prior_critic_table, selection_table
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval, verdict
@@ -84,18 +86,6 @@ def evaluate_claim(claim: Claim, experiment: Experiment, group: Group) -> ClaimR
 # ----------------------------------------------------------------------------------------------
 # Formatting
 # ----------------------------------------------------------------------------------------------
-def _num(value: float, digits: int = 1, scale: float = 1.0) -> str:
-    return "-" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
-
-
-def format_interval(interval: Interval, digits: int = 1, scale: float = 1.0) -> str:
-    """``mean [low, high]``, or the mean alone when there is no interval."""
-    mean = _num(interval.mean, digits, scale)
-    if not (math.isfinite(interval.low) and math.isfinite(interval.high)):
-        return mean
-    return f"{mean} [{_num(interval.low, digits, scale)}, {_num(interval.high, digits, scale)}]"
-
-
 def _cell(text: str) -> str:
     """Text safe inside a markdown table cell."""
     return text.replace("|", "\\|")
