@@ -271,6 +271,17 @@ def test_run_dry_run_lists_the_plan(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert not any(tmp_path.iterdir())
 
 
+def test_run_notes_seeds_a_variant_does_not_declare(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--seeds applies to every chosen variant; a seed the report would leave out is named before anything runs."""
+    from sb3_pearl.reproduce.cli import main
+
+    args = ["run", "merge-table3", "--variants", "alpha-0-fixed-entropy", "alpha-1-fixed-entropy", "--seeds", "3-5"]
+    assert main([*args, "--dry-run", "--results-dir", str(tmp_path)]) == 0
+    err = capsys.readouterr().err
+    assert "merge-table3 does not declare seeds [4, 5] for alpha-1-fixed-entropy (its seeds: [0, 1, 2, 3])" in err
+    assert "for alpha-0-fixed-entropy" not in err  # alpha 0 declares Table I's 10 seeds
+
+
 def test_run_dry_run_says_what_is_done_resumed_and_started(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A finished run is listed as skipped, one with a checkpoint as resumed, the others as started (issue 37: the dry
     run listed finished runs as if they would run); --force starts all from zero; nothing on disk changes."""
@@ -710,19 +721,20 @@ def test_a_group_holds_the_seeds_its_experiment_declares(tmp_path: Path) -> None
 def test_a_variant_may_declare_its_own_seeds() -> None:
     """Issue 36 took Table III's alpha 0 and 0.1 rows and Table II's 300-node row (beside PEARL) to Table I's 10
     seeds: a run without --seeds plans each variant's declared seeds, --seeds still names them for every variant."""
-    from sb3_pearl.reproduce.scheduler import plan_runs
+    from sb3_pearl.reproduce.scheduler import plan_runs, undeclared_seeds
 
     table2, table3 = get_experiment("merge-table2"), get_experiment("merge-table3")
     assert table3.seeds_of("alpha-0-fixed-entropy") == tuple(range(10)) == table3.seeds_of("pearlplus-fixed-entropy")
     assert table3.seeds_of("alpha-1-fixed-entropy") == (0, 1, 2, 3)
-    assert table2.seeds_of("pearlplus-300-fixed-entropy") == tuple(range(10)) == table2.seeds_of("pearl-fixed-entropy")
-    assert table2.seeds_of("pearlplus-100-fixed-entropy") == (0, 1, 2)
+    assert all(table2.seeds_of(variant.name) == tuple(range(10)) for variant in table2.variants)  # Table II: every row
     runs = plan_runs(table3, "cpu", None, None, ["alpha-0-fixed-entropy", "alpha-5-fixed-entropy"])
     assert [(run.variant, run.seed) for run in runs] == [("alpha-0-fixed-entropy", s) for s in range(10)] + [
         ("alpha-5-fixed-entropy", s) for s in range(4)
     ]
     runs = plan_runs(table3, "cpu", [7], None, ["alpha-0-fixed-entropy", "alpha-5-fixed-entropy"])
     assert [(run.variant, run.seed) for run in runs] == [("alpha-0-fixed-entropy", 7), ("alpha-5-fixed-entropy", 7)]
+    assert undeclared_seeds(table3, runs) == {"alpha-5-fixed-entropy": [7]}  # alpha 5 declares 0-3: the report skips 7
+    assert undeclared_seeds(table3, plan_runs(table3, "cpu", None, None, None)) == {}
     with pytest.raises(ValueError, match="variant_seeds names unknown variants"):
         dataclasses.replace(table3, variant_seeds={"alpha-7": (0,)})
     with pytest.raises(ValueError, match="eval_seed 10001 must differ"):

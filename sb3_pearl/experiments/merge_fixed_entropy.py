@@ -7,9 +7,11 @@ PEARL's k = 0 crash rate; where the encoder carries task information and PEARL's
 merge row of Table I again at that setting (PEARL and PEARL+, 4 seeds, with the shift column), then Table II's
 ablation and Table III's alpha sweep on merge (3 seeds each). Table III was extended to 4 seeds (the paper's count:
 "each mean and standard deviation is calculated on 4 independent runs") once its 3-seed verdicts, reported in
-docs/results.md, were in; Table II's fourth seed is not run yet. Issue 36 ("if compute is left") takes the rows
+docs/results.md, were in. Issue 36 ("if compute is left") takes the rows
 next to Table I's to its 10 seeds: Table III's alpha 0 (alpha 0.1 is Table I's PEARL+ already) and Table II's
-300-node PEARL+ beside PEARL (``variant_seeds``); the other rows keep their seeds.
+300-node PEARL+ beside PEARL (``variant_seeds``). Once those were in (2026-12-06), Table II's two other rows (without
+the prior critic, and 100 nodes) were declared at the same 10 seeds, so that the whole table is paired with PEARL on
+one set of seeds; Table III's alpha 0.01, 1 and 5 rows keep their 4 seeds.
 
 The three experiments below are those tables' merge variants with ``ent_coef=1.0`` and ``reward_scale=5.0`` added to
 their overrides (variant names get the suffix ``-fixed-entropy``), with the tables' own paper cells and claims renamed
@@ -112,9 +114,8 @@ MERGE_TABLE2 = merge_at_reference_entropy(
     TABLE2,
     "merge-table2",
     ("pearl", "pearlplus-wo", "pearlplus-300", "pearlplus-100"),
-    (0, 1, 2),
+    TABLE1_SEEDS,  # every row at Table I's 10 seeds: the 300-node row since issue 36, the other two rows since 2026-12-06
     PEARL_RUNS,
-    variant_seeds={"pearl": TABLE1_SEEDS, "pearlplus-300": TABLE1_SEEDS},  # issue 36: the 300-node row at 10 seeds
 )
 # alpha 0.1 is Table I's PEARL+ (same model): its runs are merge-table1's
 PEARLPLUS = MERGE_TABLE1.variant(f"pearlplus{SUFFIX}")

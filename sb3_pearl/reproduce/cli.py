@@ -170,7 +170,14 @@ def _variants_after_selection(experiment: Experiment, budget: str, results_dir: 
 
 
 def _run(args: argparse.Namespace) -> int:
-    from sb3_pearl.reproduce.scheduler import BackendUnavailableError, RunSummary, load_ray_backend, plan_runs, run_experiment
+    from sb3_pearl.reproduce.scheduler import (
+        BackendUnavailableError,
+        RunSummary,
+        load_ray_backend,
+        plan_runs,
+        run_experiment,
+        undeclared_seeds,
+    )
 
     experiment = get_experiment(args.experiment)
     budget = args.budget or experiment.budget
@@ -183,6 +190,12 @@ def _run(args: argparse.Namespace) -> int:
     if variants is None and experiment.after_selection:
         variants = _variants_after_selection(experiment, budget, args.results_dir)
     planned = plan_runs(experiment, budget, seeds, args.family, variants)  # every name and override checked
+    for variant, extra in undeclared_seeds(experiment, planned).items():
+        print(
+            f"note: {experiment.name} does not declare seeds {extra} for {variant} (its seeds: "
+            f"{list(experiment.seeds_of(variant))}); they run, but the report leaves them out",
+            file=sys.stderr,
+        )
     if not args.dry_run:
         check_results_dir(args.results_dir)
     if len(planned) > CONFIRM_RUNS and not args.yes and not args.dry_run:

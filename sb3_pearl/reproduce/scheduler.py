@@ -108,6 +108,22 @@ def plan_runs(
     return runs
 
 
+def undeclared_seeds(experiment: Experiment, runs: Sequence[RunKey]) -> dict[str, list[int]]:
+    """
+    The planned seeds each variant does not declare (:meth:`Experiment.seeds_of`): ``--seeds`` applies to every chosen
+    variant, and the report shows only a variant's declared seeds, so such a run trains but no table counts it.
+
+    :param experiment: the experiment
+    :param runs: the planned runs (:func:`plan_runs`)
+    :return: variant name -> its undeclared seeds, in plan order (only variants that have some)
+    """
+    undeclared: dict[str, list[int]] = {}
+    for run in runs:
+        if run.seed not in experiment.seeds_of(run.variant) and run.seed not in undeclared.get(run.variant, []):
+            undeclared.setdefault(run.variant, []).append(run.seed)
+    return undeclared
+
+
 def select_pending(
     runs: Sequence[RunKey],
     budget_preset: str,
