@@ -3,8 +3,10 @@ short training run through train.py's pipeline.
 
 1. **The headline** (:data:`HEADLINE`: Highway-Merge at the PEARL reference's fixed entropy, PEARL against PEARL+): the
    paper's table (trajectories k = 0, 1, 3, 5: violation rate and return, with 95% intervals) from the committed
-   ``result.json`` files of every seed, the paired difference PEARL+ - PEARL over seeds, and the figure
-   (``<log folder>/demo/headline.png``). Read from ``results/``, so it follows the committed results as they change.
+   re-measured meta-test of every seed (``meta_test_large.json``: 100 held-out tasks x 10 prior draws, the README's
+   headline; each run's own ``result.json`` meta-test where a run has none), the paired difference PEARL+ - PEARL over
+   seeds, Table I's verdicts, and the figure (``<log folder>/demo/headline.png``). Read from ``results/``, so it
+   follows the committed results as they change.
 2. **The replay**: the committed ``model.zip`` of a few seeds of each, meta-tested again on the first tasks and prior
    draws of their committed meta-test (same tasks, same eval seed, common random numbers): the same table for the
    replayed trajectories, and whether every replayed trajectory equals its committed row.
@@ -37,6 +39,8 @@ from sb3_pearl.common.checks import non_negative_int, positive_int
 from sb3_pearl.evaluation.held_out import run_meta_test
 from sb3_pearl.evaluation.meta_test import PAPER_KS, MetaTestResult
 from sb3_pearl.evaluation.statistics import summarize, wilson_interval
+from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE
+from sb3_pearl.reproduce.layout import check_result_path, read_run_result
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval
 from sb3_pearl.zoo import train
 from sb3_pearl.zoo.registry import register_algos
@@ -81,9 +85,43 @@ def committed_meta_test(run_dir: str | os.PathLike[str]) -> tuple[MetaTestResult
     :param run_dir: the run folder
     :return: the meta-test and the result record
     """
-    with open(Path(run_dir, "result.json")) as file:
-        record = json.load(file)
+    record = read_run_result(Path(run_dir, "result.json"))  # refused if it is not the result of its folder's run
     return MetaTestResult.from_dict(record["meta_test"]), record
+
+
+def remeasured_meta_test(run_dir: str | os.PathLike[str]) -> MetaTestResult | None:
+    """
+    The run's re-measured meta-test (``reproduce remeasure``'s record, Table I's larger design, which the README's
+    headline reads): k = 0 from every prior draw (100 tasks x 10), k >= 1 from the adapted pass.
+
+    :param run_dir: the run folder
+    :return: the meta-test, or None if the run has no re-measured record
+    """
+    path = Path(run_dir, MERGE_REMEASURE.file_name)
+    if not path.is_file():
+        return None
+    with open(path) as file:
+        record = json.load(file)
+    check_result_path(path, record)  # a copied or moved record must not stand for another run
+    prior, adapted = record["prior"], record["adapted"]
+    rows = prior["rows"] + [row for row in adapted["rows"] if int(row["k"]) > 0]  # the rows the summary was made from
+    repeats = {"n_repeats": prior["config"]["n_repeats"], "adapted_repeats": adapted["config"]["n_repeats"]}
+    config = {**adapted["config"], **repeats}
+    return MetaTestResult.from_dict({"rows": rows, "summary": record["summary"], "config": config})
+
+
+def headline_meta_tests(found: Mapping[str, Mapping[int, Path]]) -> tuple[dict[str, dict[int, MetaTestResult]], bool]:
+    """
+    The meta-tests the headline table shows: every run's re-measured one when every run has it (the README's
+    numbers), else every run's own (``result.json``), so that the paired differences compare like with like.
+
+    :param found: label -> seed -> run folder (:func:`headline_runs`)
+    :return: label -> seed -> meta-test, and whether they are the re-measured ones
+    """
+    remeasured = {label: {seed: remeasured_meta_test(run) for seed, run in seeds.items()} for label, seeds in found.items()}
+    if all(result is not None for seeds in remeasured.values() for result in seeds.values()):
+        return {label: {seed: r for seed, r in seeds.items() if r is not None} for label, seeds in remeasured.items()}, True
+    return {label: {seed: committed_meta_test(run)[0] for seed, run in seeds.items()} for label, seeds in found.items()}, False
 
 
 def pool(results: Sequence[MetaTestResult]) -> MetaTestResult:
@@ -274,9 +312,10 @@ def _headline(
     """Print the committed headline table and write its figure; return the meta-tests and the figure paths."""
     from sb3_pearl.evaluation.figures import plot_all  # matplotlib only when needed
 
-    headline = {label: {seed: committed_meta_test(run)[0] for seed, run in seeds.items()} for label, seeds in found.items()}
+    headline, remeasured = headline_meta_tests(found)
     print(f"=== {HEADLINE_TITLE} ===")
-    print("Committed results (" + ", ".join(f"results/{variant}" for variant in HEADLINE.values()) + ")")
+    source = f"re-measured on Table I's design, {MERGE_REMEASURE.file_name}" if remeasured else "each run's own meta-test"
+    print("Committed results (" + ", ".join(f"results/{variant}" for variant in HEADLINE.values()) + f"; {source})")
     print(describe(headline))
     print("Violation: a crash or a failed merge. Intervals: Wilson over the pooled trajectories (violations),")
     print("t over seeds (returns); the difference rows are paired over seeds (t).\n")

@@ -343,11 +343,19 @@ def test_demo_at_a_small_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, c
     # the README's headline verdicts (re-measured meta-test, pre-written rules), printed as docs/results.md writes them
     assert "Table I decided" in out and any(line.startswith("- **Safer prior**") for line in summary["decided"])
     assert all(line in out for line in summary["decided"])
-    # the headline table holds the committed numbers of docs/results.md's generated Table I (k = 0, pooled Wilson)
-    headline = summary["headline"]
-    pooled = {label: demo.pool(list(seeds.values())).summary_at(0) for label, seeds in headline.items()}
-    for label, entry in pooled.items():
-        assert f"{100 * entry['violation_rate']:.1f} [" in out, label
+    # the headline table is the README's: the re-measured meta-test, whose paired differences are the rules' intervals
+    from sb3_pearl.reproduce.table1_verdicts import decide_family
+
+    assert "re-measured on Table I's design" in out
+    decision = decide_family("highway-merge", demo.default_results_dir())
+    assert decision.prior_interval is not None and decision.adapted_interval is not None
+    prior, adapted = decision.prior_interval, decision.adapted_interval
+    violations, returns = [line.split() for line in out.splitlines() if line.startswith("PEARL+ - PEARL")]  # the headline's
+    # cells k = 0, 1, 3, 5 of 3 words each after the label's 3: k = 0 of the violation row, k = 5 of the return row
+    assert " ".join(violations[3:6]) == f"{100 * prior.mean:+.1f} [{100 * prior.low:+.1f}, {100 * prior.high:+.1f}]"
+    assert " ".join(returns[-3:]) == f"{adapted.mean:+.1f} [{adapted.low:+.1f}, {adapted.high:+.1f}]"
+    pooled = {label: demo.pool(list(seeds.values())).summary_at(0) for label, seeds in summary["headline"].items()}
+    assert {entry["n"] for entry in pooled.values()} == {1000 * len(decision.paired_seeds)}  # 100 tasks x 10 draws a seed
 
 
 @pytest.mark.slow

@@ -87,7 +87,7 @@ def faster_option(env_id: str, algo: str, budget: str | None, prog: str = "train
     return (
         f"Faster: {prog} --algo {algo} --env {env_id} --budget cpu trains with the reproduction harness's cpu preset "
         f"({entry['n_timesteps']:,} env steps, policy_kwargs {entry.get('policy_kwargs', 'default')}; "
-        "PEARL / PEARL+ runs of it took 8-42 min on one core)."
+        "PEARL / PEARL+ runs of it took 5-44 min on one core)."
     )
 
 

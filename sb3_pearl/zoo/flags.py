@@ -16,7 +16,7 @@ from sb3_pearl.zoo.usage import UsageError, check_env_id
 PROJECT_FLAGS_HELP = """
 sb3-pearl flags (docs/cli.md):
   --budget PRESET       train with the env's entry of a budget preset instead of zoo_hyperparams/<algo>.yml:
-                        cpu (PEARL / PEARL+ runs of 8-42 min on one core), smoke or paper
+                        cpu (PEARL / PEARL+ runs of 5-44 min on one core), smoke or paper
                         (sb3_pearl/config/presets/; -n and -params still override it)
   --resume CHECKPOINT   continue a --save-freq checkpoint (or a run's model) up to n_timesteps in all, with its
                         replay buffer and RNG states
