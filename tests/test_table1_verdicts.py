@@ -165,3 +165,16 @@ def test_tables_2_and_3_show_the_remeasured_numbers_beside_their_own(tmp_path: P
     assert alpha001.endswith("| -5.5 [-24.6, 13.6] (2 seeds) |")
     assert "Finished but not re-measured yet (left out above): alpha-5-fixed-entropy seed(s) [0]." in text
     assert remeasured_section(tmp_path / "nothing") == []
+
+
+def test_a_result_that_is_not_its_folders_run_is_refused(tmp_path: Path) -> None:
+    """Issue 40: a result.json copied into another seed's folder must not stand for that seed in the verdicts."""
+    (owner, name), _ = MERGE
+    write_run(tmp_path, owner, "highway-merge", name, 0, summary(0.1, 0.0, -7.6), summary(0.1, 0.0, -7.6))
+    folder = run_dir(tmp_path, RunKey(owner, "highway-merge", name, 0))
+    copy = folder.with_name("seed1")
+    copy.mkdir()
+    for file in folder.iterdir():
+        (copy / file.name).write_bytes(file.read_bytes())
+    with pytest.raises(ValueError, match="seed 'seed0' \\(its folder says 'seed1'\\)"):
+        decide_family("highway-merge", tmp_path)

@@ -181,9 +181,9 @@ def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> 
     """Measure one run, under its lock; its result.json is read here, so nothing written before is overwritten."""
     from sb3_pearl.experiments import get_experiment
     from sb3_pearl.registry import algorithm_class
-    from sb3_pearl.reproduce.layout import MODEL_FILE, cpu_info, read_result, write_json_atomic
+    from sb3_pearl.reproduce.layout import MODEL_FILE, cpu_info, read_run_result, write_json_atomic
 
-    result = read_result(path)
+    result = read_run_result(path)  # refused if it is not the result of its folder's run
     if experiments is not None and result.get("experiment") not in experiments:
         return False
     section = result.get("prior_critic")

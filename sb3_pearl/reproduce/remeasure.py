@@ -27,7 +27,7 @@ from sb3_pearl.evaluation.held_out import meta_test_record, model_test_tasks, ru
 from sb3_pearl.evaluation.meta_test import MetaTestResult, json_value
 from sb3_pearl.evaluation.statistics import summarize
 from sb3_pearl.experiments.table1_rules import RemeasureConfig
-from sb3_pearl.reproduce.layout import MODEL_FILE, RESULT_FILE, cpu_info, package_versions, read_result, write_json_atomic
+from sb3_pearl.reproduce.layout import MODEL_FILE, RESULT_FILE, cpu_info, package_versions, read_run_result, write_json_atomic
 
 MATCHED_COLUMNS = ("task", "repeat", "k", "return", "cost", "length", "violated")
 
@@ -110,7 +110,7 @@ def remeasure_run(folder: Path, config: RemeasureConfig, force: bool = False) ->
     out = folder / config.file_name
     if not (folder / RESULT_FILE).is_file() or (out.is_file() and not force):
         return None
-    result = read_result(folder / RESULT_FILE)
+    result = read_run_result(folder / RESULT_FILE)  # refused if it is not the result of its folder's run
     experiment = get_experiment(result["experiment"])
     family = experiment.family(result["family"])
     algo = experiment.variant(result["variant"]).algo

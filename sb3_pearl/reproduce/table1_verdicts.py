@@ -21,7 +21,7 @@ from typing import Any
 from sb3_pearl.experiments import get_experiment
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
-from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_result, run_dir
+from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
 from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval
 
 PAPER_KS = (0, 1, 3, 5)
@@ -81,7 +81,7 @@ def load_run(folder: Path, read_remeasured: bool) -> RunNumbers | None:
     that is not there yet)."""
     if not (folder / RESULT_FILE).is_file():
         return None
-    result = read_result(folder / RESULT_FILE)
+    result = read_run_result(folder / RESULT_FILE)  # refused if it is not the result of its folder's run
     own = _by_k(result["meta_test"]["summary"])
     summary = own
     if read_remeasured:
