@@ -5,16 +5,16 @@ Sizes (``--sizes``): ``cpu``, the `cpu` budget preset's Walker2D-vel entry (the 
 paper's (16 tasks x 256 rows, 3x300 networks, 3x200 encoder, 100 context rows). SB3 SAC trains on the same rows
 (batch tasks x rows) with the same networks.
 
-The bare step (:class:`BareStep`) is the same math written as fast as torch allows on a CPU: each critic ensemble
-held as stacked weights and evaluated with one ``baddbmm`` per layer, the frozen-critic passes on detached views of
-those weights, one fused Adam over every parameter, foreach Polyak updates, no SB3 classes, buffers, logging or
-divergence guard.
+The bare step (:class:`BareStep`) is the same math written as fast as torch allows on a CPU: each critic of the
+ensemble one ``linear`` per layer (stacked weights with one ``baddbmm`` per layer, ``--batched-bare``, were
+slower on this project's CPUs: docs/speed.md), the frozen-critic passes on detached weights, one fused Adam over every
+parameter, foreach Polyak updates, no SB3 classes, buffers, logging or divergence guard.
 
 Every variant is timed in interleaved repeats (SAC, PEARL, bare PEARL, PEARL+, bare PEARL+, then again) and the
 median of the repeats is reported, so that a neighbour's load hits them alike. Prints seconds per gradient step and
 the ratios the project targets: PEARL+ <= 1.15x its bare step and <= 1.5x SAC, at both sizes.
 
-    python benchmarks/throughput.py [--sizes cpu paper] [--steps 10] [--repeats 7] [--threads 1]
+    python benchmarks/throughput.py [--sizes cpu paper] [--steps 10] [--repeats 7] [--threads 1] [--batched-bare]
 """
 
 from __future__ import annotations
@@ -264,10 +264,11 @@ def measure(variants: dict[str, Callable[[], None]], steps: int, repeats: int) -
     return {name: statistics.median(values) for name, values in times.items()}
 
 
-def make_variants(size: Size, bf16: bool) -> dict[str, Callable[[], None]]:
-    """One gradient step of each variant at ``size``, in the order they are timed."""
+def make_variants(size: Size, bf16: bool, batched_bare: bool = False) -> dict[str, Callable[[], None]]:
+    """One gradient step of each variant at ``size``, in the order they are timed (``batched_bare``: the bare steps
+    hold each critic ensemble as stacked weights, one ``baddbmm`` per layer)."""
     sac, pearl, plus = make_sac(size), make_pearl(PEARL, size), make_pearl(PEARLPlus, size)
-    bare, bare_plus = BareStep(size, prior=False), BareStep(size, prior=True)
+    bare, bare_plus = BareStep(size, prior=False, batched=batched_bare), BareStep(size, prior=True, batched=batched_bare)
     batch = size.tasks * size.rows
     variants: dict[str, Callable[[], None]] = {
         "sac": lambda: sac.train(gradient_steps=1, batch_size=batch),
@@ -289,6 +290,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7, help="interleaved timing repeats (the median is reported)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1])
     parser.add_argument("--bf16", action="store_true", help="also time PEARL+ with use_bf16=True")
+    parser.add_argument(
+        "--batched-bare", action="store_true", help="bare steps with stacked critic weights and baddbmm (docs/speed.md)"
+    )
     args = parser.parse_args()
     print(
         "| size | threads | SAC s/step | PEARL s/step | PEARL+ s/step | bare PEARL s/step | bare PEARL+ s/step "
@@ -297,7 +301,7 @@ def main() -> None:
     print("|---" * (11 + args.bf16) + "|")
     for name in args.sizes:
         size = SIZES[name]
-        variants = make_variants(size, args.bf16)
+        variants = make_variants(size, args.bf16, args.batched_bare)
         for threads in args.threads:
             th.set_num_threads(threads)
             t = measure(variants, args.steps, args.repeats)

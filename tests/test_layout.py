@@ -167,7 +167,31 @@ def test_an_algorithm_imports_only_algorithm_code(package: str) -> None:
     assert loaded == [], f"importing {package} loads {loaded}"
 
 
-SPEED_FIGURE = re.compile(r"\d+(\.\d+)?(-\d+(\.\d+)?)?(x|%) \*?(faster|slower)|\d+(-\d+)? fps\b")
+OBSERVERS = ("evaluation", "reproduce", "zoo")
+
+
+@pytest.mark.parametrize("module", sorted(m for m in MODULES if room(m) in ("pearl", "finetune", "maml")))
+def test_algorithm_modules_import_no_observer(module: str) -> None:
+    """Seam 4 on the static graph (function-level imports included): an algorithm module imports no module of the
+    evaluation layer, the harness, the zoo or the diagnostics; the diagnostics themselves (``pearl.diagnostics``) are
+    the observer that lives beside PEARL and may use the evaluation layer."""
+    if ".diagnostics" in module:
+        return
+    observers = sorted(t for t in GRAPH[module] if room(t) in OBSERVERS or ".diagnostics" in t)
+    assert observers == [], f"{module} imports {observers}: observe it from above (a callback, the logger)"
+
+
+def test_the_observer_rule_sees_a_function_level_import() -> None:
+    """The graph the rule reads holds imports made inside functions (the report's figures and sections are imported in
+    ``build_report``), which the import-time test above cannot see."""
+    assert "sb3_pearl.reproduce.remeasured_tables" in GRAPH["sb3_pearl.reproduce.report"]
+    assert "sb3_pearl.evaluation.meta_test" in GRAPH["sb3_pearl.pearl.diagnostics.rollouts"]
+
+
+SPEED_FIGURE = re.compile(
+    r"\d+(\.\d+)?(-\d+(\.\d+)?)?(x|%) \*?(faster|slower)|\d+(-\d+)? fps\b"  # ratios and rates
+    r"|\d+(\.\d+)? (core|CPU)-hours?\b|\d+(\.\d+)? ?(ms|s)/(step|update)\b"  # a measured cost
+)
 
 
 def docstrings_and_comments(path: Path) -> Iterable[tuple[int, str]]:
@@ -181,6 +205,13 @@ def docstrings_and_comments(path: Path) -> Iterable[tuple[int, str]]:
     for token in tokenize.generate_tokens(io.StringIO(source).readline):
         if token.type == tokenize.COMMENT:
             yield token.start[0], token.string
+
+
+def test_the_speed_figure_pattern_on_hand_made_lines() -> None:
+    for figure in ("3.6x faster", "18% slower", "560-833 fps", "~8.5 core-hours a seed", "1 CPU-hour", "27.6 ms/step"):
+        assert SPEED_FIGURE.search(figure), figure
+    for prose in ("2x128 networks", "the step is compute-bound", "one thread per core", "5 s of collection"):
+        assert not SPEED_FIGURE.search(prose), prose
 
 
 def test_docstrings_carry_no_speed_figures() -> None:

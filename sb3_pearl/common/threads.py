@@ -7,9 +7,9 @@ docs/speed.md, "The thread default", has the measurements behind the rule).
 The rule (:func:`default_num_threads`):
 
 - networks narrower than :data:`WIDE_LAYER` units (every ``cpu`` and ``smoke`` preset, the zoo's SafePoint and
-  Highway-Merge entries, Fine-Tune, MAML): **one thread**;
-- wider networks (the ``paper`` preset's 3x300): one thread per idle core (the cores this process may run on minus
-  the 1-minute load average, rounded down), at least 1 and at most :data:`MAX_THREADS`.
+  Highway-Merge PEARL entries, MAML): **one thread**;
+- wider networks (the ``paper`` preset's 3x300, the zoo's Fine-Tune entries): one thread per idle core (the cores
+  this process may run on minus the 1-minute load average, rounded down), at least 1 and at most :data:`MAX_THREADS`.
 
 It is applied by ``learn()`` of every algorithm of the project (:class:`~sb3_pearl.common.meta_algorithm.MetaAlgorithm`),
 and so by ``train.py``, and by ``enjoy.py`` after it loads a model, only when the thread count is not explicit

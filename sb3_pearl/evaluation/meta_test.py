@@ -205,7 +205,7 @@ class MetaTestResult:
 # ----------------------------------------------------------------------------------------------
 # Rollouts
 # ----------------------------------------------------------------------------------------------
-class _SingleEnv:
+class SingleEnvRunner:
     """One env, gymnasium or a one-env VecEnv, behind set_task / reset / step (with terminated and truncated)."""
 
     def __init__(self, env: gym.Env | VecEnv) -> None:
@@ -273,7 +273,7 @@ class _SingleEnv:
 
 def rollout(
     model: AdaptiveModel,
-    env: _SingleEnv,
+    env: SingleEnvRunner,
     deterministic: bool = True,
     max_steps: int | None = None,
     trace_keys: Sequence[str] | None = None,
@@ -374,7 +374,7 @@ def meta_test(
     # An inner policy-gradient step (MAML) learns nothing from deterministic rollouts: algorithms that
     # adapt on their own stochastic data say so with `stochastic_adaptation = True` and act stochastically.
     deterministic = deterministic and not getattr(model, "stochastic_adaptation", False)
-    runner = _SingleEnv(env)
+    runner = SingleEnvRunner(env)
     info_keys = runner.family_keys(TRAJECTORY_INFO_KEYS_ATTR)
     trace_keys = runner.family_keys(STEP_TRACE_KEYS_ATTR) if trace_keys is None else tuple(trace_keys)
     runner.seed(seed)
@@ -432,6 +432,7 @@ __all__ = [
     "STEP_TRACE_KEYS_ATTR",
     "TRAJECTORY_INFO_KEYS_ATTR",
     "MetaTestResult",
+    "SingleEnvRunner",
     "meta_test",
     "read_json",
     "rollout",

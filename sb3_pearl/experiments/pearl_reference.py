@@ -23,16 +23,17 @@ Walker row (issue 20, run 1). It was not by 500k (velocity error 0.65 m/s, still
 The fourth family, ``walker2d-vel-ref-long``, is walker2d-vel-ref unchanged but trained to 1.5M env steps: the
 tracking diagnostic found the walker too slow on the fast targets rather than in the wrong task (a locomotion skill
 still being learnt), and a straight line through walker2d-vel-ref's curve crosses the 0.3 m/s bar near 0.9M env steps.
-~8.5 core-hours a seed on the Xeon, so it resumes across sessions (``--family walker2d-vel-ref-long --seeds 0``). Its
-first 500k env steps are walker2d-vel-ref's (same configuration and seed): on the same CPU model its curve repeats
-walker2d-vel-ref's point by point, a free check of the harness' determinism.
+It takes longer than one session, so it resumes across sessions (``--family walker2d-vel-ref-long --seeds 0``;
+``reproduce status pearl-reference`` gives the CPU time left). Its first 500k env steps are walker2d-vel-ref's (same
+configuration and seed): on the same CPU model its curve repeats walker2d-vel-ref's point by point, a free check of
+the harness' determinism.
 
 The fifth family, ``ant3d-vel-long``, asks the same question of Ant-3D-Vel, the paper's other MuJoCo family of Tables
 I and II, once Walker2D-vel had no ``cpu-long`` budget within reach: PEARL at the ``cpu`` preset's Ant-3D-Vel entry
 (Table I's networks, batch and schedule) trained to 500k env steps instead of 80k, with the curve and the competence
 check every 20k (``--family ant3d-vel-long --seeds 0``). The first competent env-step count, if any, is the budget of
-a Table I Ant-3D-Vel row at which PEARL is competent. Written before the run: one seed first (~1.4 core-hours on the
-Xeon); a second only if the first becomes competent (name the seeds: the experiment's default is 0-2).
+a Table I Ant-3D-Vel row at which PEARL is competent. Written before the run: one seed first; a second only if the
+first becomes competent (name the seeds: the experiment's default is 0-2).
 """
 
 from __future__ import annotations

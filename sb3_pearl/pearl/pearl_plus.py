@@ -1,4 +1,8 @@
-"""PEARL+ : PEARL with the paper's prior-regularisation term and prior critic."""
+"""PEARL+ : PEARL with the paper's prior-regularisation term and prior critic.
+
+The paper: L. Wen, S. Zhang, H. E. Tseng, B. Singh, D. Filev, H. Peng, "Improved Robustness and Safety for
+Pre-Adaptation of Meta Reinforcement Learning with Prior Regularization".
+"""
 
 from __future__ import annotations
 

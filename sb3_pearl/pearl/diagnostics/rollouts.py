@@ -18,7 +18,7 @@ from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.seeding import derived_seed
 from sb3_pearl.common.soft_actor_critic import evaluate_policy
 from sb3_pearl.envs.task_protocol import Task
-from sb3_pearl.evaluation.meta_test import _SingleEnv
+from sb3_pearl.evaluation.meta_test import SingleEnvRunner
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL
@@ -93,7 +93,7 @@ def rollout_with_z(
     :param max_steps: stop after this many steps (None: until the episode ends)
     :return: the trajectory
     """
-    runner = env if isinstance(env, _SingleEnv) else _SingleEnv(env)
+    runner = env if isinstance(env, SingleEnvRunner) else SingleEnvRunner(env)
     z_t = th.as_tensor(np.asarray(z.cpu() if isinstance(z, th.Tensor) else z), dtype=th.float32, device=model.device)
     runner.set_task(task)
     runner.seed(seed)
