@@ -273,3 +273,17 @@ def test_every_yaml_entry_is_valid() -> None:
             assert entry["n_timesteps"] > 0
             if "learning_rate" in entry:
                 assert isinstance(entry["learning_rate"], float)
+
+
+def test_a_short_run_meta_tests_on_a_few_tasks(tmp_path: Path) -> None:
+    """Issue 37 item 5: -n under a tenth of the entry's n_timesteps meta-tests on at most 5 held-out tasks instead of
+    the model's n_test_tasks (8 here), and says so in the plan line; the meta_test key's n_tasks still decides."""
+    params = [*TINY_ZOO_PARAMS, "n_test_tasks:8"]
+    short = train(tmp_path / "short", params=params)
+    assert "the final meta-test: at most 5 tasks x 1 prior draw(s) x 3 trajectories (a short run" in short.stdout
+    rows = json.loads((tmp_path / "short" / "pearlplus" / f"{ENV_ID}_1" / "meta_test.json").read_text())["rows"]
+    assert len({row["task"] for row in rows}) == 5 and len(rows) == 5 * 3
+    chosen = train(tmp_path / "chosen", params=[*params, 'meta_test:"dict(n_tasks=7, n_adapt=2)"'])
+    assert "the final meta-test: 7 tasks x 1 prior draw(s) x 3 trajectories (Ctrl-C skips it" in chosen.stdout
+    rows = json.loads((tmp_path / "chosen" / "pearlplus" / f"{ENV_ID}_1" / "meta_test.json").read_text())["rows"]
+    assert len({row["task"] for row in rows}) == 7

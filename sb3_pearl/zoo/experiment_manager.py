@@ -53,7 +53,7 @@ from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import PROJECT_FLAGS_HELP, parse_project_flags
 from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager
-from sb3_pearl.zoo.meta_testing import ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
+from sb3_pearl.zoo.meta_testing import SHORT_RUN_FRACTION, ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
 from sb3_pearl.zoo.registry import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, get_latest_run_id, run_zoo_train
@@ -206,6 +206,10 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         if isinstance(meta, str):
             meta = parse_dict_string(meta, "meta_test")
         self.meta_test_kwargs.update(meta)
+        # A short run (-n under a tenth of the entry's n_timesteps: a smoke run of the pipeline) meta-tests on a few
+        # tasks (meta_test_settings), so that it costs what it trains; the meta_test key's n_tasks still decides.
+        entry_steps = float(hyperparams.get("n_timesteps") or 0)
+        self.short_run = 0 < self.n_timesteps * SHORT_RUN_FRACTION < entry_steps
         # A budget preset's policy_kwargs arrive as the preset's plain dict (activation by name, as config.yml saves
         # them); the harness's own conversion makes them constructor kwargs. A zoo YAML's string form is rl_zoo3's.
         return super()._preprocess_hyperparams(model_kwargs(hyperparams))
@@ -255,7 +259,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         self._reserved_folder = None
 
     def _check_held_out_tasks(self, model: BaseAlgorithm) -> None:
-        settings = self.meta_test_kwargs
+        settings = self.meta_test_settings(model)
         env = self.create_envs(1, eval_env=True)
         try:
             model_test_tasks(

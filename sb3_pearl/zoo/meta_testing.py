@@ -23,7 +23,13 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import CheckpointCallback, ProgressBarCallback
 
 from sb3_pearl.evaluation.callbacks import MetaTestCallback, MetaTestTrialCallback, ResumableCheckpointCallback
-from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, META_TEST_DEFAULTS, held_out_meta_test, write_meta_test
+from sb3_pearl.evaluation.held_out import (
+    DEFAULT_EVAL_SEED,
+    META_TEST_DEFAULTS,
+    default_n_tasks,
+    held_out_meta_test,
+    write_meta_test,
+)
 from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.evaluation.progress import TrainingProgressCallback
 from sb3_pearl.zoo.budget import faster_option
@@ -32,6 +38,8 @@ from sb3_pearl.zoo.usage import program_name
 
 # The zoo key `meta_test`: the settings of every meta-test plus the eval seed of its tasks (evaluation/held_out.py).
 ZOO_META_TEST_DEFAULTS: dict[str, Any] = {**META_TEST_DEFAULTS, "eval_seed": DEFAULT_EVAL_SEED}
+SHORT_RUN_FRACTION = 10  # -n below 1 / SHORT_RUN_FRACTION of the entry's n_timesteps is a short (smoke) run ...
+SHORT_RUN_META_TEST_TASKS = 5  # ... whose final meta-test draws at most this many held-out tasks, unless meta_test says
 
 
 class MetaTestExperimentManager(ExperimentManager):
@@ -39,6 +47,7 @@ class MetaTestExperimentManager(ExperimentManager):
 
     adaptive: bool = False  # the algorithm has the adaptation API
     budget: str | None = None  # --budget PRESET (the faster-option hint of the progress callback)
+    short_run: bool = False  # a short run: its final meta-test on SHORT_RUN_META_TEST_TASKS tasks
     meta_test_kwargs: dict[str, Any]  # the `meta_test` key over ZOO_META_TEST_DEFAULTS
 
     @property
@@ -60,10 +69,18 @@ class MetaTestExperimentManager(ExperimentManager):
         if self.verbose >= 1 and not self.optimize_hyperparameters:
             settings = self.meta_test_kwargs
             tasks = settings.get("n_tasks") or "the model's test"
+            short = self.short_run and settings.get("n_tasks") is None
+            if short:  # -n under a tenth of the entry's n_timesteps (meta_test_settings)
+                tasks = f"at most {SHORT_RUN_META_TEST_TASKS}"
             print(
                 f"After training, the final meta-test: {tasks} tasks x {settings['n_repeats']} prior draw(s) x "
-                f"{int(settings['n_adapt']) + 1} trajectories (Ctrl-C skips it; -params "
-                '"meta_test:dict(n_tasks=N)" sizes it)',
+                f"{int(settings['n_adapt']) + 1} trajectories ("
+                + (
+                    "a short run, -n under a tenth of the entry's n_timesteps: its numbers check the pipeline; "
+                    if short
+                    else ""
+                )
+                + 'Ctrl-C skips it; -params "meta_test:dict(n_tasks=N)" sizes it)',
                 flush=True,
             )
         self.callbacks.insert(0, TrainingProgressCallback(self.show_progress, slow_hint, verbose=self.verbose))
@@ -104,6 +121,20 @@ class MetaTestExperimentManager(ExperimentManager):
         with trial_eval_callback_replaced(functools.partial(MetaTestTrialCallback, **settings)):
             super().hyperparameters_optimization()
 
+    def meta_test_settings(self, model: BaseAlgorithm) -> dict[str, Any]:
+        """
+        The final meta-test's settings for ``model``: the ``meta_test`` key's, where a short run (``-n`` under
+        1 / :data:`SHORT_RUN_FRACTION` of the entry's ``n_timesteps``) that leaves ``n_tasks`` open draws at most
+        :data:`SHORT_RUN_META_TEST_TASKS` tasks instead of the model's ``n_test_tasks``.
+
+        :param model: the trained model
+        :return: the settings
+        """
+        settings = dict(self.meta_test_kwargs)
+        if self.short_run and settings.get("n_tasks") is None:
+            settings["n_tasks"] = min(SHORT_RUN_META_TEST_TASKS, default_n_tasks(model))
+        return settings
+
     def final_meta_test(self, model: BaseAlgorithm) -> MetaTestResult:
         """
         The meta-test of every trained model (:mod:`sb3_pearl.evaluation.held_out`: held-out tasks drawn from the eval
@@ -113,7 +144,7 @@ class MetaTestExperimentManager(ExperimentManager):
         :param model: the trained model
         :return: the result
         """
-        settings = self.meta_test_kwargs
+        settings = self.meta_test_settings(model)
         env = self.create_envs(1, eval_env=True)
         try:
             if self.verbose > 0:
