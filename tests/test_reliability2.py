@@ -169,6 +169,22 @@ def test_a_signal_cuts_the_run_saves_what_the_resume_needs_and_the_resume_is_exa
         assert all(th.equal(a, b) for a, b in zip(full, again, strict=True)), name
 
 
+def test_a_signal_during_the_final_meta_test_keeps_the_model_and_writes_no_meta_test(tmp_path: Path) -> None:
+    """docs/reliability.md: a signal during the final meta-test leaves no meta_test.* (no partial numbers), the trained
+    model saved, interrupted.json saying when, and the exit code 128 + signal."""
+    faulty_envs.send_signals({420 + 10: signal.SIGTERM})  # training takes env steps 1-420; the meta-test follows
+    logs = tmp_path / "logs"
+    run = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
+    cut = _train_signal_env(tmp_path, logs, check=False)
+    assert cut.returncode == 128 + signal.SIGTERM, cut.stdout[-2000:] + cut.stderr[-2000:]
+    assert "Received SIGTERM: stopping the final meta-test (the model is saved)" in cut.stdout
+    assert "Stopped by SIGTERM during the final meta-test" in cut.stdout
+    record = json.loads((run / "interrupted.json").read_text())
+    assert record["signal"] == "SIGTERM" and record["during"] == "final meta-test" and record["num_timesteps"] == 420
+    assert not any(run.glob("meta_test.*"))
+    assert PEARLPlus.load(run / f"{SIGNAL_ENV}.zip").num_timesteps == 420
+
+
 def test_a_resume_without_its_replay_buffer_is_refused_in_one_line(tmp_path: Path) -> None:
     model = tmp_path / "model.zip"
     model.write_bytes(b"")  # the check comes before anything reads it
@@ -271,11 +287,31 @@ def test_train_py_mistakes_are_one_line(tmp_path: Path, extra: list[str], messag
     refused = run_in_process(train, *argv, check=False)
     assert refused.returncode == 2, refused.stdout[-2000:] + refused.stderr[-2000:]
     assert "Traceback" not in refused.stderr
-    assert message in refused.stderr.strip().splitlines()[-1]
+    lines = [line for line in refused.stderr.strip().splitlines() if line.strip()]
+    assert len(lines) == 1 and message in lines[0], lines  # one line, naming what to fix
     assert not logs.exists() or not any(logs.rglob("*.csv"))  # no run folder left
 
 
-def test_a_truncated_model_is_named_by_enjoy_and_diagnose(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+def test_train_py_on_a_folder_it_cannot_write_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """-f on a folder without write permission (faked: the tests may run as root, who may write anywhere)."""
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_access = os.access
+
+    def access(path: str, mode: int, **kwargs: Any) -> bool:
+        return False if Path(path) == locked else real_access(path, mode, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(locked / "logs"), "-n", "60"]
+    refused = run_in_process(train, *argv, check=False)
+    lines = [line for line in refused.stderr.strip().splitlines() if line.strip()]
+    assert refused.returncode == 2 and len(lines) == 1 and f"{locked} is not writable" in lines[0], lines
+    assert list(locked.iterdir()) == []
+
+
+def test_a_truncated_model_is_named_by_enjoy_and_diagnose(
+    tmp_path: Path, tiny_kwargs: dict[str, Any], capsys: pytest.CaptureFixture[str]
+) -> None:
     run = tmp_path / "logs" / "pearlplus" / f"{ENV_ID}_1"
     run.mkdir(parents=True)
     tiny_pearl(tiny_kwargs, seed=0).save(tmp_path / "model.zip")
@@ -288,6 +324,7 @@ def test_a_truncated_model_is_named_by_enjoy_and_diagnose(tmp_path: Path, tiny_k
     with pytest.raises(SystemExit) as exit_info:
         diagnose_main([str(run / f"{ENV_ID}.zip"), "--env-id", ENV_ID])
     assert exit_info.value.code == 2
+    assert expected in capsys.readouterr().err  # the same words as enjoy's, not "not a PEARL / PEARL+ model"
 
 
 def test_save_to_a_path_it_cannot_write_names_the_destination(
