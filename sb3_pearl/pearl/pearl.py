@@ -1,4 +1,4 @@
-"""PEARL (Rakelly et al. 2019, arXiv:1903.08254) and PEARL+ (Wen et al., the paper: PEARL plus a prior-regularisation term).
+"""PEARL (Rakelly et al. 2019, arXiv:1903.08254) and PEARL+ (Wen et al. 2021, arXiv:2108.08448: PEARL plus a prior term).
 
 ``train()`` follows Algorithm 1 of the paper, vectorised over the ``meta_batch`` tasks: every
 network runs once per gradient step on the rows of all tasks, shaped ``(T * B, ...)``.

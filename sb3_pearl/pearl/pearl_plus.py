@@ -1,7 +1,7 @@
 """PEARL+ : PEARL with the paper's prior-regularisation term and prior critic.
 
 The paper: L. Wen, S. Zhang, H. E. Tseng, B. Singh, D. Filev, H. Peng, "Improved Robustness and Safety for
-Pre-Adaptation of Meta Reinforcement Learning with Prior Regularization".
+Pre-Adaptation of Meta Reinforcement Learning with Prior Regularization", arXiv:2108.08448.
 """
 
 from __future__ import annotations

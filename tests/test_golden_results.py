@@ -1,0 +1,82 @@
+"""Behaviour preserved across refactors (issue 39's constraint): a smoke experiment's result.json and a ``train.py``
+smoke run's meta_test.json, against the numbers committed in ``tests/data/golden_results.json``.
+
+Every meta-test row (return, cost, violation) of both runs is compared. On a CPU whose torch kernels match the ones
+that wrote the file (the same ``torch.backends.cpu.get_cpu_capability()``), the comparison is exact, so a change to
+the code that moves any number fails. On another kind of CPU, matrix products round differently, so returns are
+compared within 1e-4 (relative) and violations must still be equal. A change that is meant to move the numbers
+(new math, a new default) rewrites the file, and its commit says why:
+
+    SB3_PEARL_WRITE_GOLDEN=1 python -m pytest tests/test_golden_results.py
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch as th
+
+from sb3_pearl.reproduce.cli import main as reproduce_main
+from sb3_pearl.zoo import train
+from tests.conftest import run_in_process
+
+GOLDEN = Path(__file__).resolve().parent / "data" / "golden_results.json"
+WRITE = os.environ.get("SB3_PEARL_WRITE_GOLDEN") == "1"
+ROW_KEYS = ("task", "repeat", "k", "return", "cost", "violated")
+
+
+def _rows(meta_test: dict[str, Any]) -> list[dict[str, Any]]:
+    return [{key: row[key] for key in ROW_KEYS} for row in meta_test["rows"]]
+
+
+def smoke_experiment_rows(results_dir: Path) -> list[dict[str, Any]]:
+    """One smoke run of the harness (safe-point, PEARL+ alpha 0.1, seed 0): its held-out meta-test rows."""
+    args = ["run", "safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0.1"]
+    run_in_process(reproduce_main, *args, "--results-dir", str(results_dir))
+    result = json.loads((results_dir / "safe-point" / "safe-point" / "alpha-0.1" / "seed0" / "result.json").read_text())
+    return _rows(result["meta_test"])
+
+
+def train_py_rows(log_folder: Path) -> list[dict[str, Any]]:
+    """``train.py --algo pearlplus --env SafePointGoalMeta-v0 --budget smoke --seed 0``: its meta_test.json rows."""
+    argv = ["--algo", "pearlplus", "--env", "SafePointGoalMeta-v0", "--budget", "smoke", "--seed", "0"]
+    run_in_process(train, *argv, "-f", str(log_folder), "--num-threads", "1")
+    return _rows(json.loads((log_folder / "pearlplus" / "SafePointGoalMeta-v0_1" / "meta_test.json").read_text()))
+
+
+def assert_same(found: list[dict[str, Any]], golden: list[dict[str, Any]], exact: bool, what: str) -> None:
+    assert len(found) == len(golden), f"{what}: {len(found)} meta-test rows, the golden file has {len(golden)}"
+    for row, expected in zip(found, golden, strict=True):
+        where = f"{what}, task {row['task']} repeat {row['repeat']} k {row['k']}"
+        assert (row["task"], row["repeat"], row["k"], row["violated"]) == (
+            expected["task"],
+            expected["repeat"],
+            expected["k"],
+            expected["violated"],
+        ), where
+        for key in ("return", "cost"):
+            if exact:
+                assert row[key] == expected[key], f"{where}: {key} {row[key]!r}, golden {expected[key]!r}"
+            else:
+                assert row[key] == pytest.approx(expected[key], rel=1e-4, abs=1e-6), f"{where}: {key}"
+
+
+def test_smoke_runs_give_the_golden_numbers(tmp_path: Path) -> None:
+    found = {
+        "reproduce run safe-point --budget smoke (alpha-0.1, seed 0)": smoke_experiment_rows(tmp_path / "results"),
+        "train.py --budget smoke (SafePointGoalMeta-v0, seed 0)": train_py_rows(tmp_path / "logs"),
+    }
+    capability = th.backends.cpu.get_cpu_capability()
+    if WRITE:
+        GOLDEN.parent.mkdir(exist_ok=True)
+        GOLDEN.write_text(json.dumps({"cpu_capability": capability, "torch": th.__version__, "runs": found}, indent=1))
+        pytest.skip(f"wrote {GOLDEN}")
+    golden = json.loads(GOLDEN.read_text())
+    exact = golden["cpu_capability"] == capability and golden["torch"] == th.__version__
+    assert set(found) == set(golden["runs"])
+    for what, rows in found.items():
+        assert_same(rows, golden["runs"][what], exact, what)
