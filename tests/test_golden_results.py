@@ -1,10 +1,10 @@
 """Behaviour preserved across refactors (issue 39's constraint): a smoke experiment's result.json and a ``train.py``
 smoke run's meta_test.json, against the numbers committed in ``tests/data/golden_results.json``.
 
-Every meta-test row (return, cost, violation) of both runs is compared. On a CPU whose torch kernels match the ones
-that wrote the file (the same ``torch.backends.cpu.get_cpu_capability()``), the comparison is exact, so a change to
-the code that moves any number fails. On another kind of CPU, matrix products round differently, so returns are
-compared within 1e-4 (relative) and violations must still be equal. A change that is meant to move the numbers
+Every meta-test row (return, cost, violation) of both runs is compared. On the kind of machine that wrote the file
+(the same CPU model, torch CPU capability and torch version: the same matrix-product kernels), the comparison is
+exact, so a change to the code that moves any number fails. Elsewhere matrix products round differently (MKL takes
+other paths on other CPUs), so returns are compared within 1e-4 (relative) and violations must still be equal. A change that is meant to move the numbers
 (new math, a new default) rewrites the file, and its commit says why:
 
     SB3_PEARL_WRITE_GOLDEN=1 python -m pytest tests/test_golden_results.py
@@ -21,6 +21,7 @@ import pytest
 import torch as th
 
 from sb3_pearl.reproduce.cli import main as reproduce_main
+from sb3_pearl.reproduce.layout import cpu_info
 from sb3_pearl.zoo import train
 from tests.conftest import run_in_process
 
@@ -70,13 +71,25 @@ def test_smoke_runs_give_the_golden_numbers(tmp_path: Path) -> None:
         "reproduce run safe-point --budget smoke (alpha-0.1, seed 0)": smoke_experiment_rows(tmp_path / "results"),
         "train.py --budget smoke (SafePointGoalMeta-v0, seed 0)": train_py_rows(tmp_path / "logs"),
     }
-    capability = th.backends.cpu.get_cpu_capability()
+    machine = {"cpu": cpu_info()["model"], "cpu_capability": th.backends.cpu.get_cpu_capability(), "torch": th.__version__}
     if WRITE:
         GOLDEN.parent.mkdir(exist_ok=True)
-        GOLDEN.write_text(json.dumps({"cpu_capability": capability, "torch": th.__version__, "runs": found}, indent=1))
+        GOLDEN.write_text(json.dumps({**machine, "runs": found}, indent=1))
         pytest.skip(f"wrote {GOLDEN}")
     golden = json.loads(GOLDEN.read_text())
-    exact = golden["cpu_capability"] == capability and golden["torch"] == th.__version__
+    exact = all(golden.get(key) == value for key, value in machine.items())
     assert set(found) == set(golden["runs"])
     for what, rows in found.items():
         assert_same(rows, golden["runs"][what], exact, what)
+
+
+def test_the_comparison_on_hand_made_rows() -> None:
+    row = {"task": 0, "repeat": 0, "k": 0, "return": -10.0, "cost": 0.0, "violated": False}
+    nudged = {**row, "return": -10.0 * (1 + 1e-6)}  # another CPU's rounding
+    assert_same([nudged], [row], exact=False, what="other CPU")
+    with pytest.raises(AssertionError, match="return"):
+        assert_same([nudged], [row], exact=True, what="same CPU")
+    with pytest.raises(AssertionError):
+        assert_same([{**row, "violated": True}], [row], exact=False, what="a flipped violation")
+    with pytest.raises(AssertionError, match="1 meta-test rows, the golden file has 2"):
+        assert_same([row], [row, row], exact=True, what="a row lost")
