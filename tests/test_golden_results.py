@@ -4,8 +4,8 @@ smoke run's meta_test.json, against the numbers committed in ``tests/data/golden
 Every meta-test row (return, cost, violation) of both runs is compared. On the kind of machine that wrote the file
 (the same CPU model, torch CPU capability and torch version: the same matrix-product kernels), the comparison is
 exact, so a change to the code that moves any number fails. Elsewhere matrix products round differently (MKL takes
-other paths on other CPUs), so returns are compared within 1e-4 (relative) and violations must still be equal. A change that is meant to move the numbers
-(new math, a new default) rewrites the file, and its commit says why:
+other paths on other CPUs), so returns are compared within 1e-4 (relative) and violations must still be equal. A
+change that is meant to move the numbers (new math, a new default) rewrites the file, and its commit says why:
 
     SB3_PEARL_WRITE_GOLDEN=1 python -m pytest tests/test_golden_results.py
 """
