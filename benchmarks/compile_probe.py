@@ -3,10 +3,11 @@ observation, action and latent) forward and backward on 1,024 rows (8 tasks x 12
 ``torch.compile`` (inductor), in interleaved rounds. Prints the medians and the compile time (a cold compile fills
 inductor's on-disk cache; a second run is warm).
 
-The probe covers the critics' products only, not a whole PEARL+ step (optimizers, the frozen-critic passes, the
-encoder): docs/speed.md says what it leaves open.
+Then the whole step: the bare PEARL+ step of ``benchmarks/throughput.py`` at the cpu size, eager against the same step
+with its loss (every forward pass, the encoder, the frozen-critic passes) compiled; backward runs through the compiled
+graph, the fused Adam and the Polyak update stay eager.
 
-    python benchmarks/compile_probe.py [--rounds 7] [--steps 100]
+    python -m benchmarks.compile_probe [--rounds 7] [--steps 100]
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from collections.abc import Callable
 
 import torch as th
 import torch.nn as nn
+
+from benchmarks.throughput import SIZES, BareStep
 
 ROWS, INPUTS, WIDTH, CRITICS = 1024, 28, 128, 3
 
@@ -57,8 +60,33 @@ def main() -> None:
         eager.append(timed(step, args.steps))
         fast.append(timed(compiled, args.steps))
     e, c = statistics.median(eager), statistics.median(fast)
-    print(f"eager {e:.2f} ms, compiled {c:.2f} ms a pass (medians of {args.rounds} interleaved rounds of {args.steps})")
-    print(f"eager / compiled {e / c:.2f}; compile {compile_s:.1f} s")
+    print(
+        f"critics: eager {e:.2f} ms, compiled {c:.2f} ms a pass (medians of {args.rounds} interleaved rounds of {args.steps})"
+    )
+    print(f"critics: eager / compiled {e / c:.2f}; compile {compile_s:.1f} s")
+
+    th.manual_seed(0)
+    plain = BareStep(SIZES["cpu"], prior=True)
+    th.manual_seed(0)
+    with_compiled_loss = BareStep(SIZES["cpu"], prior=True)
+    start = time.perf_counter()
+    loss = th.compile(with_compiled_loss.loss)
+    with_compiled_loss.update(loss())
+    compile_s = time.perf_counter() - start
+
+    def compiled_step() -> None:
+        with_compiled_loss.update(loss())
+
+    steps = max(args.steps // 5, 1)
+    for fn in (plain.step, compiled_step):
+        timed(fn, 3)
+    eager, fast = [], []
+    for _ in range(args.rounds):
+        eager.append(timed(plain.step, steps))
+        fast.append(timed(compiled_step, steps))
+    e, c = statistics.median(eager), statistics.median(fast)
+    print(f"bare PEARL+ step: eager {e:.2f} ms, loss compiled {c:.2f} ms (medians of {args.rounds} rounds of {steps})")
+    print(f"bare PEARL+ step: eager / compiled {e / c:.2f}; compile {compile_s:.1f} s")
 
 
 if __name__ == "__main__":

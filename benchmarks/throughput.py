@@ -210,6 +210,20 @@ class BareStep:
         return a, logp - th.log(1 - a.pow(2) + 1e-6).sum(-1, keepdim=True)
 
     def step(self) -> None:
+        self.update(self.loss())
+
+    def update(self, loss: th.Tensor) -> None:
+        """Backward, one fused Adam step, the target networks' Polyak update."""
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        with th.no_grad():
+            for src, dst in self.targets:
+                th._foreach_mul_(dst, 0.995)
+                th._foreach_add_(dst, src, alpha=0.005)
+
+    def loss(self) -> th.Tensor:
+        """Every loss of one gradient step, summed (each reaches only its own parameters, as in PEARL+)."""
         tasks, rows = self.size.tasks, self.size.rows
         out = self.encoder(self.ctx)
         mu, var = out[..., :LATENT], F.softplus(out[..., LATENT:]).clamp(min=1e-7)
@@ -235,14 +249,7 @@ class BareStep:
             loss = loss + (self.pq(th.cat([x0, self.act], -1))[0] - y0).pow(2).mean()
             qa0 = self.pq(th.cat([x0, a_all[n:]], -1), frozen=True)[0]
             loss = loss + 0.1 * (alpha * lp_all[n:] - qa0).mean()
-        loss = loss - (self.log_alpha * (lp_all[:n] - ACT_DIM).detach()).mean()
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
-        self.opt.step()
-        with th.no_grad():
-            for src, dst in self.targets:
-                th._foreach_mul_(dst, 0.995)
-                th._foreach_add_(dst, src, alpha=0.005)
+        return loss - (self.log_alpha * (lp_all[:n] - ACT_DIM).detach()).mean()
 
 
 def timed(step: Callable[[], None], steps: int) -> float:
