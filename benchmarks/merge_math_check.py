@@ -58,6 +58,13 @@ def welch(after: list[float], before: list[float]) -> Interval:
     return Interval(difference, difference - half, difference + half, len(after) + len(before))
 
 
+def holds(interval: Interval, value: float) -> str:
+    """``yes`` / ``NO``: whether ``interval`` holds ``value``; ``-`` when there is no interval (one seed on a side)."""
+    if not (math.isfinite(interval.low) and math.isfinite(interval.high)):
+        return "-"
+    return "yes" if interval.low <= value <= interval.high else "NO"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--results-dir", type=pathlib.Path, default=ROOT / "results")
@@ -81,7 +88,6 @@ def main() -> None:
         for label, k, key, scale, digits in MEASURES:
             values = {side: [run["summary"][k][key] for run in sides[side]] for side in (False, True)}
             before, after = t_interval(values[False]), t_interval(values[True])
-            inside = before.low <= after.mean <= before.high
             difference = welch(values[True], values[False])
             seeds = {side: ",".join(str(run["seed"]) for run in sides[side]) for side in (False, True)}
             cells = (
@@ -91,9 +97,9 @@ def main() -> None:
                 seeds[True],
                 format_interval(before, digits, scale),
                 format_interval(after, digits, scale),
-                "yes" if inside else "NO",
+                holds(before, after.mean),
                 format_interval(difference, digits, scale),
-                "yes" if difference.low <= 0 <= difference.high else "NO",
+                holds(difference, 0.0),
             )
             print("| " + " | ".join(cells) + " |")
     cpus = {side: sorted({run["cpu"] for sides in rows.values() for run in sides[side]}) for side in (False, True)}

@@ -284,6 +284,16 @@ def test_a_short_run_meta_tests_on_a_few_tasks(tmp_path: Path) -> None:
     rows = json.loads((tmp_path / "short" / "pearlplus" / f"{ENV_ID}_1" / "meta_test.json").read_text())["rows"]
     assert len({row["task"] for row in rows}) == 5 and len(rows) == 5 * 3
     chosen = train(tmp_path / "chosen", params=[*params, 'meta_test:"dict(n_tasks=7, n_adapt=2)"'])
-    assert "the final meta-test: 7 tasks x 1 prior draw(s) x 3 trajectories (Ctrl-C skips it" in chosen.stdout
+    assert "the final meta-test: 7 tasks x 1 prior draw(s) x 3 trajectories (a short run" in chosen.stdout
     rows = json.loads((tmp_path / "chosen" / "pearlplus" / f"{ENV_ID}_1" / "meta_test.json").read_text())["rows"]
     assert len({row["task"] for row in rows}) == 7
+    # a budget preset's meta-test is capped too (cpu: 20 tasks x 10 prior draws; 90k env steps against -n 200)
+    params = [param for param in TINY_ZOO_PARAMS if not param.startswith("meta_test")]
+    budget = train(tmp_path / "budget", "pearlplus", "--budget", "cpu", params=params)
+    assert "the final meta-test: 5 tasks x 1 prior draw(s) x 6 trajectories (a short run" in budget.stdout
+    rows = json.loads((tmp_path / "budget" / "pearlplus" / f"{ENV_ID}_1" / "meta_test.json").read_text())["rows"]
+    assert len(rows) == 5 * 1 * 6
+    # with -i (not --resume), -n counts steps added to a trained model: not a short run
+    model = tmp_path / "short" / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip"
+    more = train(tmp_path / "more", "pearlplus", "-i", str(model), params=params)
+    assert "the final meta-test: the model's test tasks x 1 prior draw(s)" in more.stdout and "a short run" not in more.stdout

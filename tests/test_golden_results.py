@@ -23,7 +23,7 @@ import torch as th
 from sb3_pearl.reproduce.cli import main as reproduce_main
 from sb3_pearl.reproduce.layout import cpu_info
 from sb3_pearl.zoo import train
-from tests.conftest import run_in_process
+from tests.conftest import TINY_ZOO_PARAMS, run_in_process
 
 GOLDEN = Path(__file__).resolve().parent / "data" / "golden_results.json"
 WRITE = os.environ.get("SB3_PEARL_WRITE_GOLDEN") == "1"
@@ -43,9 +43,11 @@ def smoke_experiment_rows(results_dir: Path) -> list[dict[str, Any]]:
 
 
 def train_py_rows(log_folder: Path) -> list[dict[str, Any]]:
-    """``train.py --algo pearlplus --env SafePointGoalMeta-v0 --budget smoke --seed 0``: its meta_test.json rows."""
-    argv = ["--algo", "pearlplus", "--env", "SafePointGoalMeta-v0", "--budget", "smoke", "--seed", "0"]
-    run_in_process(train, *argv, "-f", str(log_folder), "--num-threads", "1")
+    """``train.py`` on SafePointGoalMeta-v0 at the tests' tiny size (seed 1, 200 env steps): its meta_test.json rows,
+    some of which violate (the harness's smoke run above has none)."""
+    argv = ["--algo", "pearlplus", "--env", "SafePointGoalMeta-v0", "-n", "200", "--seed", "1", "--eval-freq", "-1"]
+    params = [*TINY_ZOO_PARAMS, "kl_weight:0.37", "latent_dim:3"]
+    run_in_process(train, *argv, "-f", str(log_folder), "--num-threads", "1", "-params", *params)
     return _rows(json.loads((log_folder / "pearlplus" / "SafePointGoalMeta-v0_1" / "meta_test.json").read_text()))
 
 
@@ -69,7 +71,7 @@ def assert_same(found: list[dict[str, Any]], golden: list[dict[str, Any]], exact
 def test_smoke_runs_give_the_golden_numbers(tmp_path: Path) -> None:
     found = {
         "reproduce run safe-point --budget smoke (alpha-0.1, seed 0)": smoke_experiment_rows(tmp_path / "results"),
-        "train.py --budget smoke (SafePointGoalMeta-v0, seed 0)": train_py_rows(tmp_path / "logs"),
+        "train.py -n 200 at the tests' tiny size (SafePointGoalMeta-v0, seed 1)": train_py_rows(tmp_path / "logs"),
     }
     machine = {"cpu": cpu_info()["model"], "cpu_capability": th.backends.cpu.get_cpu_capability(), "torch": th.__version__}
     if WRITE:
@@ -77,6 +79,8 @@ def test_smoke_runs_give_the_golden_numbers(tmp_path: Path) -> None:
         GOLDEN.write_text(json.dumps({**machine, "runs": found}, indent=1))
         pytest.skip(f"wrote {GOLDEN}")
     golden = json.loads(GOLDEN.read_text())
+    rows = [row for runs in golden["runs"].values() for row in runs]
+    assert any(row["violated"] for row in rows) and any(row["cost"] > 0 for row in rows)  # the check can see them
     exact = all(golden.get(key) == value for key, value in machine.items())
     assert set(found) == set(golden["runs"])
     for what, rows in found.items():

@@ -207,9 +207,13 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             meta = parse_dict_string(meta, "meta_test")
         self.meta_test_kwargs.update(meta)
         # A short run (-n under a tenth of the entry's n_timesteps: a smoke run of the pipeline) meta-tests on a few
-        # tasks (meta_test_settings), so that it costs what it trains; the meta_test key's n_tasks still decides.
+        # tasks and one draw (meta_test_settings), so that it costs what it trains, unless -params sets them. With -i
+        # (not --resume), -n counts the steps added to a trained model: never a short run.
         entry_steps = float(hyperparams.get("n_timesteps") or 0)
-        self.short_run = 0 < self.n_timesteps * SHORT_RUN_FRACTION < entry_steps
+        added_to_a_trained_model = self.continue_training and not self.resume
+        self.short_run = not added_to_a_trained_model and 0 < self.n_timesteps * SHORT_RUN_FRACTION < entry_steps
+        chosen = (self.custom_hyperparams or {}).get("meta_test") or {}
+        self.meta_test_chosen = set(parse_dict_string(chosen, "meta_test") if isinstance(chosen, str) else chosen)
         # A budget preset's policy_kwargs arrive as the preset's plain dict (activation by name, as config.yml saves
         # them); the harness's own conversion makes them constructor kwargs. A zoo YAML's string form is rl_zoo3's.
         return super()._preprocess_hyperparams(model_kwargs(hyperparams))

@@ -47,7 +47,8 @@ class MetaTestExperimentManager(ExperimentManager):
 
     adaptive: bool = False  # the algorithm has the adaptation API
     budget: str | None = None  # --budget PRESET (the faster-option hint of the progress callback)
-    short_run: bool = False  # a short run: its final meta-test on SHORT_RUN_META_TEST_TASKS tasks
+    short_run: bool = False  # a short run: its final meta-test on SHORT_RUN_META_TEST_TASKS tasks, one draw each
+    meta_test_chosen: set[str] = set()  # the meta_test keys given with -params (a short run keeps them)
     meta_test_kwargs: dict[str, Any]  # the `meta_test` key over ZOO_META_TEST_DEFAULTS
 
     @property
@@ -67,10 +68,10 @@ class MetaTestExperimentManager(ExperimentManager):
         self.callbacks = [cb for cb in self.callbacks if not isinstance(cb, ProgressBarCallback)]
         slow_hint = faster_option(self.env_name.gym_id, self.algo, self.budget, program_name())
         if self.verbose >= 1 and not self.optimize_hyperparameters:
-            settings = self.meta_test_kwargs
+            settings = self.meta_test_settings(None)
             tasks = settings.get("n_tasks") or "the model's test"
-            short = self.short_run and settings.get("n_tasks") is None
-            if short:  # -n under a tenth of the entry's n_timesteps (meta_test_settings)
+            short = self.short_run
+            if short and self.meta_test_kwargs.get("n_tasks") is None:  # the cap also depends on the model's test tasks
                 tasks = f"at most {SHORT_RUN_META_TEST_TASKS}"
             print(
                 f"After training, the final meta-test: {tasks} tasks x {settings['n_repeats']} prior draw(s) x "
@@ -121,18 +122,23 @@ class MetaTestExperimentManager(ExperimentManager):
         with trial_eval_callback_replaced(functools.partial(MetaTestTrialCallback, **settings)):
             super().hyperparameters_optimization()
 
-    def meta_test_settings(self, model: BaseAlgorithm) -> dict[str, Any]:
+    def meta_test_settings(self, model: BaseAlgorithm | None) -> dict[str, Any]:
         """
-        The final meta-test's settings for ``model``: the ``meta_test`` key's, where a short run (``-n`` under
-        1 / :data:`SHORT_RUN_FRACTION` of the entry's ``n_timesteps``) that leaves ``n_tasks`` open draws at most
-        :data:`SHORT_RUN_META_TEST_TASKS` tasks instead of the model's ``n_test_tasks``.
+        The final meta-test's settings for ``model``: the ``meta_test`` key's (the YAML entry's or the budget
+        preset's, with ``-params``'s on top). A short run (``-n`` under 1 / :data:`SHORT_RUN_FRACTION` of the entry's
+        ``n_timesteps``) draws at most :data:`SHORT_RUN_META_TEST_TASKS` tasks and one prior draw of each, unless
+        ``-params`` sets ``n_tasks`` / ``n_repeats``.
 
-        :param model: the trained model
+        :param model: the trained model (None: the task count is not capped by the model's test tasks yet)
         :return: the settings
         """
         settings = dict(self.meta_test_kwargs)
-        if self.short_run and settings.get("n_tasks") is None:
-            settings["n_tasks"] = min(SHORT_RUN_META_TEST_TASKS, default_n_tasks(model))
+        if self.short_run:
+            if "n_tasks" not in self.meta_test_chosen:
+                n_tasks = settings.get("n_tasks") or (default_n_tasks(model) if model is not None else None)
+                settings["n_tasks"] = min(SHORT_RUN_META_TEST_TASKS, n_tasks or SHORT_RUN_META_TEST_TASKS)
+            if "n_repeats" not in self.meta_test_chosen:
+                settings["n_repeats"] = 1
         return settings
 
     def final_meta_test(self, model: BaseAlgorithm) -> MetaTestResult:
