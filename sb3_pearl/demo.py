@@ -236,9 +236,10 @@ def describe(by_seed: Mapping[str, Mapping[int, MetaTestResult]]) -> str:
     for label, seeds in by_seed.items():
         first = next(iter(seeds.values()))
         config = first.config
+        adapted = f" (k >= 1: {config['adapted_repeats']} each)" if "adapted_repeats" in config else ""
         parts.append(
             f"{label}: seeds {', '.join(map(str, seeds))}, {config.get('n_tasks')} held-out tasks x "
-            f"{config.get('n_repeats')} prior draws each"
+            f"{config.get('n_repeats')} prior draws each{adapted}"
         )
     eval_seed = next(iter(next(iter(by_seed.values())).values())).config.get("eval_seed")
     return "; ".join(parts) + f" (eval seed {eval_seed}, common random numbers)"
@@ -355,7 +356,7 @@ def _replay_all(
         print(f"\n=== The committed models, replayed (model.zip of seeds {', '.join(map(str, args.replay_seeds))}) ===")
         print(describe(replayed))
         print("Intervals: Wilson over the replayed trajectories (violations), t over seed x task means (returns);")
-        print("a subset of the committed trajectories, so wider than above.\n")
+        print("a subset of each run's own meta-test in result.json (not of the re-measured one above), so wider.\n")
         print(paper_table(replayed, return_unit="task", paired=False))
         verdict = "identical to" if same == total else "DIFFERENT from"
         print(f"\n{same} of {total} replayed trajectories {verdict} their committed result.json rows.")
@@ -380,9 +381,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     The demo (module docstring).
 
     :param argv: command-line arguments
-    :return: ``headline`` (label -> seed -> committed meta-test), ``replay`` (label -> seed -> replayed meta-test),
-        ``matching`` (trajectories equal to the committed ones, and their number), ``training`` (the training run's
-        meta-test, absent with ``--skip-training``), ``figures`` (written paths)
+    :return: ``headline`` (label -> seed -> the committed meta-test the table shows, :func:`headline_meta_tests`),
+        ``replay`` (label -> seed -> replayed meta-test), ``matching`` (trajectories equal to the committed ones, and
+        their number), ``training`` (the training run's meta-test, absent with ``--skip-training``), ``decided`` (the
+        verdict lines), ``figures`` (written paths)
     """
     args = demo_parser().parse_args(argv)
     register_algos()

@@ -390,3 +390,30 @@ def test_the_headline_holds_the_decided_numbers(family: str, row_start: str) -> 
     assert f"adapted as good: {decision.adapted_verdict}" in verdict or (
         decision.adapted_verdict == "as good" and "**adapted as good**" in verdict
     )
+
+
+def test_the_demo_reads_the_remeasured_record_or_falls_back_for_every_run(tmp_path: Path) -> None:
+    """The headline table rests on each seed's re-measured meta-test (k = 0: 100 tasks x 10 draws; k >= 1: the adapted
+    pass's 2 draws), only if every run has one; a record in another seed's folder is refused."""
+    import shutil
+
+    found = {}
+    for seed in (0, 1):
+        folder = tmp_path / demo.HEADLINE["PEARL+"] / f"seed{seed}"
+        folder.mkdir(parents=True)
+        for name in ("result.json", "meta_test_large.json"):
+            shutil.copy(demo.default_results_dir() / demo.HEADLINE["PEARL+"] / f"seed{seed}" / name, folder / name)
+        found[seed] = folder
+    result = demo.remeasured_meta_test(found[0])
+    assert result is not None and result.summary_at(0)["n"] == 1000
+    assert sum(row["k"] == 0 for row in result.rows) == 1000 and sum(row["k"] == 1 for row in result.rows) == 200
+    assert result.config["n_repeats"] == 10 and result.config["adapted_repeats"] == 2
+    tests, remeasured = demo.headline_meta_tests({"PEARL+": found})
+    assert remeasured and tests["PEARL+"][1].summary_at(0)["n"] == 1000
+    (found[1] / "meta_test_large.json").unlink()  # one run without its record: every run's own meta-test instead
+    tests, remeasured = demo.headline_meta_tests({"PEARL+": found})
+    own = demo.committed_meta_test(found[0])[0]
+    assert not remeasured and tests["PEARL+"][0].summary_at(0)["n"] == own.summary_at(0)["n"] < 1000
+    shutil.copy(found[0] / "meta_test_large.json", found[1] / "meta_test_large.json")  # seed 0's record as seed 1's
+    with pytest.raises(ValueError, match="its folder says 'seed1'"):
+        demo.remeasured_meta_test(found[1])

@@ -135,7 +135,10 @@ def check_result_path(path: str | os.PathLike[str], result: dict[str, Any]) -> N
     :param path: ``<results-dir>/<experiment>/<family>/<variant>/seed<N>/result.json``
     :param result: its content (:func:`read_result`)
     """
-    experiment, family, variant, seed_folder = Path(path).parts[-5:-1]
+    parts = Path(path).parts
+    if len(parts) < 5:
+        raise ValueError(f"{path} is not in the results layout (<experiment>/<family>/<variant>/seed<N>/{Path(path).name})")
+    experiment, family, variant, seed_folder = parts[-5:-1]
     expected = {"experiment": experiment, "family": family, "variant": variant, "seed": seed_folder}
     found = {**{key: result[key] for key in ("experiment", "family", "variant")}, "seed": f"seed{result['seed']}"}
     wrong = [f"{key} {found[key]!r} (its folder says {expected[key]!r})" for key in expected if found[key] != expected[key]]

@@ -174,6 +174,8 @@ def measure_results(
                     echo(f"measured {path}")
         except RunLockedError as error:
             echo(f"skip {path}: {error}")
+        except ValueError as error:  # a copy or a moved file: named, and the other runs are still measured
+            echo(f"skip {path}: {error}")
     return written
 
 
@@ -183,9 +185,9 @@ def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> 
     from sb3_pearl.registry import algorithm_class
     from sb3_pearl.reproduce.layout import MODEL_FILE, cpu_info, read_run_result, write_json_atomic
 
+    if experiments is not None and path.parent.parent.parent.parent.name not in experiments:
+        return False  # <experiment>/<family>/<variant>/seed<N>/result.json: filtered before anything is read
     result = read_run_result(path)  # refused if it is not the result of its folder's run
-    if experiments is not None and result.get("experiment") not in experiments:
-        return False
     section = result.get("prior_critic")
     current = isinstance(section, dict) and "error" not in section and section.get("version", 0) >= MEASURES_VERSION
     if current and not force:
