@@ -134,9 +134,12 @@ def test_run_is_idempotent_and_force_reruns(results: Path) -> None:
     assert out.count("skip ") == 2 and "0 done, 2 skipped" in out
     assert path.stat().st_mtime_ns == before
     args = [a for a in RUN_ARGS if a != "alpha-0.1"]
+    stale = path.parent / "meta_test_large.json"  # a record measured from the model the rerun replaces
+    stale.write_text("{}")
     out = reproduce("run", *args, "--force", "--results-dir", str(results)).stdout
     assert "1 done, 0 skipped" in out
     assert path.stat().st_mtime_ns != before
+    assert not stale.exists()  # nothing in the folder describes the old model
 
 
 def test_measure_brings_older_measures_up_to_date(results: Path, tmp_path: Path) -> None:

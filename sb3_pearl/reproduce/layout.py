@@ -128,6 +128,20 @@ def read_run_result(path: str | os.PathLike[str]) -> dict[str, Any]:
     return result
 
 
+def discard_result(folder: str | os.PathLike[str]) -> None:
+    """
+    The first step of a forced rerun (``--force``): the run's ``result.json`` goes (the folder is incomplete until the
+    rerun writes it again), and so does every record measured from the model it replaces (``reproduce remeasure``'s
+    larger meta-test), so that nothing in the folder describes another model.
+
+    :param folder: the run folder
+    """
+    from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE
+
+    for name in (RESULT_FILE, MERGE_REMEASURE.file_name):
+        Path(folder, name).unlink(missing_ok=True)
+
+
 def check_result_path(path: str | os.PathLike[str], result: dict[str, Any]) -> None:
     """
     Raise a ``ValueError`` naming ``path`` if ``result`` (read from it) is not the result of the run of its folder.

@@ -22,7 +22,7 @@ from typing import Any
 
 from ray import tune
 
-from sb3_pearl.reproduce.layout import LOG_FILE, MODEL_FILE, PROGRESS_FILE, RESULT_FILE, RunKey, run_dir
+from sb3_pearl.reproduce.layout import LOG_FILE, MODEL_FILE, PROGRESS_FILE, RESULT_FILE, RunKey, discard_result, run_dir
 from sb3_pearl.reproduce.runner import existing_result, run_one
 from sb3_pearl.reproduce.scheduler import RUN_ENV
 
@@ -111,8 +111,8 @@ def run_trial(config: dict[str, Any]) -> None:
             tune.report({"skipped": True, "shipped": False, "wall_s": 0.0})
             return
         folder.mkdir(parents=True, exist_ok=True)
-        if run["force"] and (folder / RESULT_FILE).exists():
-            (folder / RESULT_FILE).unlink()  # incomplete until the rerun writes it again
+        if run["force"]:
+            discard_result(folder)  # result.json and the records of the model the rerun replaces
         failure = _run_logged(key, budget_preset, root)
         metrics = {"skipped": False, "shipped": not shared, "wall_s": time.time() - started, "failed": failure is not None}
         if shared:

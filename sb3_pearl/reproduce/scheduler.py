@@ -30,7 +30,7 @@ from typing import Any, BinaryIO
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-from sb3_pearl.reproduce.layout import LOG_FILE, RESULT_FILE, RunKey, run_dir
+from sb3_pearl.reproduce.layout import LOG_FILE, RESULT_FILE, RunKey, discard_result, run_dir
 from sb3_pearl.reproduce.ownership import LOCKED_EXIT, PARENT_PID_ENV, lock_holder
 from sb3_pearl.reproduce.runner import existing_result, run_kwargs
 
@@ -272,7 +272,7 @@ def run_experiment(
                     continue
                 if force and key not in forced:
                     forced.add(key)
-                    (folder / RESULT_FILE).unlink(missing_ok=True)  # the folder is incomplete until the rerun writes it
+                    discard_result(folder)  # result.json and the records of the model the rerun replaces
                     RunCheckpoint(folder).remove()  # --force: from zero
                 elif not force and (folder / RESULT_FILE).is_file():  # finished meanwhile (by another command)
                     summary.skipped.append(key)
