@@ -2,7 +2,7 @@
 smoke run's meta_test.json, against the numbers committed in ``tests/data/golden_results.json``.
 
 Every meta-test row (return, cost, violation) of both runs is compared. On the kind of machine that wrote the file
-(the same CPU model, torch CPU capability and torch version: the same matrix-product kernels), the comparison is
+(the same CPU model and feature flags, torch CPU capability, torch and numpy versions), the comparison is
 exact, so a change to the code that moves any number fails. Elsewhere matrix products round differently (MKL takes
 other paths on other CPUs), so returns are compared within 1e-4 (relative) and violations must still be equal. A
 change that is meant to move the numbers (new math, a new default) rewrites the file, and its commit says why:
@@ -12,11 +12,13 @@ change that is meant to move the numbers (new math, a new default) rewrites the 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import torch as th
 
@@ -28,6 +30,17 @@ from tests.conftest import TINY_ZOO_PARAMS, run_in_process
 GOLDEN = Path(__file__).resolve().parent / "data" / "golden_results.json"
 WRITE = os.environ.get("SB3_PEARL_WRITE_GOLDEN") == "1"
 ROW_KEYS = ("task", "repeat", "k", "return", "cost", "violated")
+
+
+def cpu_flags_digest() -> str:
+    """A digest of the CPU's feature flags (``/proc/cpuinfo``), or ``unknown``: two machines that report one model name
+    may still differ in the instruction sets MKL and torch dispatch on."""
+    try:
+        with open("/proc/cpuinfo") as file:
+            flags = next((line.split(":", 1)[1] for line in file if line.startswith("flags")), "")
+    except OSError:
+        return "unknown"
+    return hashlib.sha256(" ".join(sorted(flags.split())).encode()).hexdigest()[:16] if flags else "unknown"
 
 
 def _rows(meta_test: dict[str, Any]) -> list[dict[str, Any]]:
@@ -73,7 +86,13 @@ def test_smoke_runs_give_the_golden_numbers(tmp_path: Path) -> None:
         "reproduce run safe-point --budget smoke (alpha-0.1, seed 0)": smoke_experiment_rows(tmp_path / "results"),
         "train.py -n 200 at the tests' tiny size (SafePointGoalMeta-v0, seed 1)": train_py_rows(tmp_path / "logs"),
     }
-    machine = {"cpu": cpu_info()["model"], "cpu_capability": th.backends.cpu.get_cpu_capability(), "torch": th.__version__}
+    machine = {
+        "cpu": cpu_info()["model"],
+        "cpu_flags": cpu_flags_digest(),  # the instruction sets the kernels dispatch on, not only the model's name
+        "cpu_capability": th.backends.cpu.get_cpu_capability(),
+        "torch": th.__version__,
+        "numpy": np.__version__,  # the envs' dynamics
+    }
     if WRITE:
         GOLDEN.parent.mkdir(exist_ok=True)
         GOLDEN.write_text(json.dumps({**machine, "runs": found}, indent=1))
