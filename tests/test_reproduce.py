@@ -477,7 +477,18 @@ def test_experiments_are_declared() -> None:
         "merge-table2",
         "merge-table3",
         "walker-table1",
+        "merge-confirm",
     }
+    confirm, table1_merge = get_experiment("merge-confirm"), get_experiment("merge-table1")
+    # the confirmation is merge-table1's comparison on fresh seeds: same models, family, budget and held-out tasks
+    assert confirm.seeds == tuple(range(10, 20)) and not set(confirm.seeds) & set(table1_merge.seeds)
+    assert all(a.same_model(b) for a, b in zip(confirm.variants, table1_merge.variants, strict=True))
+    assert (confirm.families, confirm.budget, confirm.eval_seed) == (
+        table1_merge.families,
+        table1_merge.budget,
+        table1_merge.eval_seed,
+    )
+    assert not confirm.shared  # both variants' runs in its own folder
     premise = get_experiment("merge-premise")  # only the entropy setting differs from table1's PEARL, which it shares
     fixed = premise.variant("pearl-fixed-entropy")
     assert fixed.algo == "pearl" and dict(fixed.overrides) == {"ent_coef": 1.0, "reward_scale": 5.0}

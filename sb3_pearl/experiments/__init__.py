@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from sb3_pearl.experiments.budgets import PRESETS, load_budget
 from sb3_pearl.experiments.families import FAMILIES, get_family
+from sb3_pearl.experiments.merge_confirm import MERGE_CONFIRM
 from sb3_pearl.experiments.merge_fixed_entropy import MERGE_TABLE1, MERGE_TABLE2, MERGE_TABLE3
 from sb3_pearl.experiments.merge_premise import MERGE_PREMISE
 from sb3_pearl.experiments.pearl_reference import PEARL_REFERENCE
@@ -41,6 +42,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         MERGE_TABLE2,
         MERGE_TABLE3,
         WALKER_TABLE1,
+        MERGE_CONFIRM,
     )
 }
 for _experiment in EXPERIMENTS.values():
