@@ -10,10 +10,11 @@ drop_adroit_notice()
 from sb3_pearl.envs import register_envs  # noqa: E402
 from sb3_pearl.finetune import FineTune  # noqa: E402
 from sb3_pearl.maml import MAML  # noqa: E402
+from sb3_pearl.oracle import Oracle  # noqa: E402
 from sb3_pearl.pearl import PEARL, PEARLPlus  # noqa: E402
 
 register_envs()
 
 __version__ = "0.1.0"
 
-__all__ = ["MAML", "PEARL", "FineTune", "PEARLPlus", "__version__", "register_envs"]
+__all__ = ["MAML", "PEARL", "FineTune", "Oracle", "PEARLPlus", "__version__", "register_envs"]

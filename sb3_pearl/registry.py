@@ -1,7 +1,7 @@
 """The one registry of the project's algorithms and activation names (everything that maps a name to a class).
 
-- :data:`ALGORITHM_NAMES` and :func:`algorithm_class`: the zoo names (``pearl``, ``pearlplus``, ``finetune``,
-  ``maml``), used by ``train.py`` / ``enjoy.py`` (``rl_zoo3.ALGOS``, filled by :func:`sb3_pearl.zoo.register_algos`),
+- :data:`ALGORITHM_NAMES` and :func:`algorithm_class`: the zoo names (``pearl``, ``pearlplus``, ``finetune``, ``maml``,
+  ``oracle``), used by ``train.py`` / ``enjoy.py`` (``rl_zoo3.ALGOS``, filled by :func:`sb3_pearl.zoo.register_algos`),
   the reproduction harness and its presets;
 - :func:`constructor_kwargs`: the keyword arguments an algorithm's constructor takes (YAML entries, presets and
   variant overrides are checked against it);
@@ -17,7 +17,7 @@ import inspect
 
 from torch import nn
 
-ALGORITHM_NAMES: tuple[str, ...] = ("pearl", "pearlplus", "finetune", "maml")
+ALGORITHM_NAMES: tuple[str, ...] = ("pearl", "pearlplus", "finetune", "maml", "oracle")
 ACTIVATIONS: dict[str, type[nn.Module]] = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU}
 # Set by the zoo and the harness themselves when they build a model: not allowed in a YAML entry or a preset.
 ZOO_SET_KWARGS = frozenset({"env", "tensorboard_log", "seed", "verbose", "device", "_init_setup_model"})
@@ -27,9 +27,10 @@ def algorithm_classes() -> dict[str, type]:
     """Zoo name -> algorithm class (imported on first use: the algorithms import torch and the envs)."""
     from sb3_pearl.finetune import FineTune
     from sb3_pearl.maml import MAML
+    from sb3_pearl.oracle import Oracle
     from sb3_pearl.pearl import PEARL, PEARLPlus
 
-    return {"pearl": PEARL, "pearlplus": PEARLPlus, "finetune": FineTune, "maml": MAML}
+    return {"pearl": PEARL, "pearlplus": PEARLPlus, "finetune": FineTune, "maml": MAML, "oracle": Oracle}
 
 
 def algorithm_class(name: str) -> type:

@@ -28,6 +28,7 @@ RANK = {
     "pearl": 3,  # the algorithms: siblings
     "finetune": 3,
     "maml": 3,
+    "oracle": 3.5,  # Fine-Tune's soft actor-critic, told the task: above finetune, below the package
     "__init__": 4,  # `import sb3_pearl`: the algorithms and the env registration
     "registry": 4,
     "experiments": 5,  # data and declarations

@@ -478,6 +478,8 @@ def test_experiments_are_declared() -> None:
         "merge-table3",
         "walker-table1",
         "merge-confirm",
+        "oracle",
+        "oracle-merge",
     }
     confirm, table1_merge = get_experiment("merge-confirm"), get_experiment("merge-table1")
     # the confirmation is merge-table1's comparison on fresh seeds: same models, family, budget and held-out tasks

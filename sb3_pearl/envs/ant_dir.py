@@ -96,6 +96,11 @@ class AntDirMetaEnv(LocomotionTaskEnv, AntEnv):
         bases = [i % k for i in range(n - n % k)] + list(rng.choice(k, size=n % k, replace=False))
         return [self._direction_around(self.base_directions[int(i)], rng) for i in rng.permutation(bases)]
 
+    def task_features(self, task: Task) -> list[float]:
+        """The unit direction ``(cos theta, sin theta)``: continuous across 0 = 2 pi, unlike theta."""
+        theta = float(task["direction"])
+        return [math.cos(theta), math.sin(theta)]
+
     def _apply_pending_task(self) -> None:
         super()._apply_pending_task()
         theta = self._task["direction"]

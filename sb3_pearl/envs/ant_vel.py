@@ -83,6 +83,11 @@ class AntVelMetaEnv(LocomotionTaskEnv, AntEnv):
             "speed": float(rng.uniform(self.speed_low, self.speed_high)),
         }
 
+    def task_features(self, task: Task) -> list[float]:
+        """The target planar velocity ``(s cos theta, s sin theta)``: continuous in the direction, unlike theta."""
+        theta, speed = float(task["direction"]), float(task["speed"])
+        return [speed * math.cos(theta), speed * math.sin(theta)]
+
     def _apply_pending_task(self) -> None:
         super()._apply_pending_task()
         theta, speed = self._task["direction"], self._task["speed"]

@@ -148,10 +148,33 @@ class MetaTaskEnv:
                     f"(e.g. {self._task[key]!r}), got {task[key]!r}"
                 )
 
+    def task_features(self, task: Task) -> list[float]:
+        """
+        The task as a fixed-length list of numbers, the same order for every task of the family: what a task-aware
+        agent (the oracle, :mod:`sb3_pearl.envs.task_observation`) is told. Default: every number of the task, keys
+        in sorted order, lists flattened in order (bools as 0 / 1, strings skipped). Families whose task holds an
+        angle override it with a continuous encoding (the angle's cosine and sine).
+
+        :param task: a task of this family
+        :return: the features
+        """
+        return _flat_numbers(task)
+
     def _apply_pending_task(self) -> None:
         if self._pending_task is not None:
             self._task = self._pending_task
             self._pending_task = None
+
+
+def _flat_numbers(value: Any) -> list[float]:
+    """Every number of a task value in a fixed order: dict keys sorted, lists in order, bools as 0 / 1."""
+    if isinstance(value, dict):
+        return [number for key in sorted(value) for number in _flat_numbers(value[key])]
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [number for item in value for number in _flat_numbers(item)]
+    if isinstance(value, (bool, np.bool_)) or _is_number(value):
+        return [float(value)]
+    return []
 
 
 def _is_number(value: Any) -> bool:

@@ -338,7 +338,8 @@ def meta_test(
 
     :param model: any object with ``reset_adaptation``, ``observe``, ``adapt`` and ``predict``
         (:class:`~sb3_pearl.common.adaptation.AdaptiveModel`)
-    :param env: a task-family env (gymnasium env, possibly wrapped, or a VecEnv of one env)
+    :param env: a task-family env (gymnasium env, possibly wrapped, or a VecEnv of one env); a model with a
+        ``prepare_env(env)`` method (the oracle) acts in the env that method returns
     :param tasks: the test tasks (a trained model's: :func:`sb3_pearl.evaluation.held_out.model_test_tasks`)
     :param n_adapt: last trajectory index K: trajectories k = 0..K are rolled out per task
     :param n_repeats: repeats of the whole sequence per task (the context is cleared for each)
@@ -374,6 +375,9 @@ def meta_test(
     # An inner policy-gradient step (MAML) learns nothing from deterministic rollouts: algorithms that
     # adapt on their own stochastic data say so with `stochastic_adaptation = True` and act stochastically.
     deterministic = deterministic and not getattr(model, "stochastic_adaptation", False)
+    prepare_env = getattr(model, "prepare_env", None)
+    if callable(prepare_env):  # the env as the model acts in it (the oracle: the task in the observation)
+        env = prepare_env(env)
     runner = SingleEnvRunner(env)
     info_keys = runner.family_keys(TRAJECTORY_INFO_KEYS_ATTR)
     trace_keys = runner.family_keys(STEP_TRACE_KEYS_ATTR) if trace_keys is None else tuple(trace_keys)

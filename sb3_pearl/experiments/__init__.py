@@ -18,6 +18,7 @@ from sb3_pearl.experiments.families import FAMILIES, get_family
 from sb3_pearl.experiments.merge_confirm import MERGE_CONFIRM
 from sb3_pearl.experiments.merge_fixed_entropy import MERGE_TABLE1, MERGE_TABLE2, MERGE_TABLE3
 from sb3_pearl.experiments.merge_premise import MERGE_PREMISE
+from sb3_pearl.experiments.oracle import ORACLE, ORACLE_MERGE
 from sb3_pearl.experiments.pearl_reference import PEARL_REFERENCE
 from sb3_pearl.experiments.prior_critic import PRIOR_CRITIC, PRIOR_CRITIC_WALKER
 from sb3_pearl.experiments.safe_point import SAFE_POINT_EXPERIMENT
@@ -43,6 +44,8 @@ EXPERIMENTS: dict[str, Experiment] = {
         MERGE_TABLE3,
         WALKER_TABLE1,
         MERGE_CONFIRM,
+        ORACLE,
+        ORACLE_MERGE,
     )
 }
 for _experiment in EXPERIMENTS.values():

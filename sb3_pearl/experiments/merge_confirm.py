@@ -32,9 +32,6 @@ is written, the report says "pending" with the number of finished pairs, not a v
 
 Beside every t interval the report gives a second interval that needs no normality (the paired sign-flip
 permutation interval, :mod:`sb3_pearl.reproduce.stats`); it is reported, it does not decide.
-
-**Cost, stated before the runs:** a ``merge-table1`` run took 13-21 minutes of one core here (training 12.5-20 min,
-its meta-test ~1 min), the re-measure about 4 minutes: 20 runs, about 6 core-hours.
 """
 
 from __future__ import annotations
@@ -42,6 +39,9 @@ from __future__ import annotations
 from sb3_pearl.experiments.merge_fixed_entropy import MERGE_TABLE1
 from sb3_pearl.experiments.spec import Experiment
 from sb3_pearl.experiments.table1_rules import RULES, DecisionRules
+
+PROJECTED_CORE_HOURS = {"per run (merge-table1's 13-21 min + the re-measure, ~4 min)": 0.3, "20 runs": 6.0}
+"""The cost, stated before the runs (merge-table1's measured run times on this project's machines)."""
 
 CONFIRM_SEEDS = tuple(range(10, 20))
 """The fresh seeds: no model of any experiment was trained with them before this file was committed."""

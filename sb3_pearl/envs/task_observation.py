@@ -1,0 +1,96 @@
+"""The task in the observation: what a task-aware agent (the oracle) is told, for any family with the task protocol.
+
+:class:`TaskObservation` appends the task in force to every observation, as a fixed-length vector: the family's
+:meth:`~sb3_pearl.envs.task_protocol.MetaTaskEnv.task_features` (every number of the task dict in sorted-key order,
+an angle as its cosine and sine), standardised with the mean and standard deviation of those features over
+:data:`REFERENCE_TASKS` tasks of the family's own distribution (``sample_tasks(REFERENCE_TASKS, seed=0)``: fixed by the
+env's ranges, never by the held-out tasks), so that a density of 30-50 veh/km and a target speed of 0-3 m/s enter the
+networks at the same scale.
+
+The task is read once per episode, right after the wrapped env's ``reset()`` applied it (``set_task`` takes effect at
+the next reset, so a task set during an episode, as Fine-Tune and the oracle do for the next one, never leaks into the
+current episode's observations).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from sb3_pearl.envs.task_protocol import Task, _flat_numbers
+
+REFERENCE_TASKS = 1000
+
+
+def task_features(base: Any, task: Task) -> np.ndarray:
+    """
+    The raw feature vector of ``task`` for the family env ``base`` (its ``task_features`` if it has one, else every
+    number of the task in sorted-key order).
+
+    :param base: the family env (``env.unwrapped``)
+    :param task: a task of the family
+    :return: float64 features
+    """
+    features = base.task_features(task) if callable(getattr(base, "task_features", None)) else _flat_numbers(task)
+    return np.asarray(features, dtype=np.float64)
+
+
+class TaskObservation(gym.ObservationWrapper):
+    """
+    Append the standardised task vector of the episode's task to each (flat ``Box``) observation.
+
+    :param env: a task-family env (``env.unwrapped`` has ``sample_tasks`` and ``get_task``) with a 1-D ``Box``
+        observation space
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        base = env.unwrapped
+        if not all(callable(getattr(base, name, None)) for name in ("sample_tasks", "get_task")):
+            raise ValueError(
+                f"TaskObservation needs a task-family env (sample_tasks, set_task, get_task): {type(base).__name__} has "
+                "no get_task(); use one of the families registered by sb3_pearl (e.g. Walker2dVelMeta-v0)"
+            )
+        space = env.observation_space
+        if not isinstance(space, spaces.Box) or len(space.shape) != 1:
+            raise ValueError(
+                f"TaskObservation appends the task to a flat Box observation; {type(base).__name__}'s observation space "
+                f"is {space} (flatten it first, e.g. gymnasium.wrappers.FlattenObservation)"
+            )
+        reference = np.stack([task_features(base, task) for task in base.sample_tasks(REFERENCE_TASKS, seed=0)])
+        if reference.ndim != 2 or reference.shape[1] == 0:
+            raise ValueError(f"TaskObservation: {type(base).__name__}'s tasks hold no number to tell the agent")
+        self.task_mean = reference.mean(axis=0)
+        std = reference.std(axis=0)
+        self.task_std = np.where(std > 1e-8, std, 1.0)  # a constant feature is only centred
+        self.task_dim = int(reference.shape[1])
+        self._features = self.task_vector(base.get_task())
+        dtype = space.dtype if space.dtype is not None else np.float32
+        self.observation_space = spaces.Box(
+            low=np.concatenate([space.low, np.full(self.task_dim, -np.inf)]).astype(dtype),
+            high=np.concatenate([space.high, np.full(self.task_dim, np.inf)]).astype(dtype),
+            dtype=dtype,  # type: ignore[arg-type]
+        )
+
+    def task_vector(self, task: Task) -> np.ndarray:
+        """
+        The standardised features of ``task`` (what is appended to the observation).
+
+        :param task: a task of the family
+        :return: a vector of length :attr:`task_dim`
+        """
+        features = task_features(self.env.unwrapped, task)
+        if features.shape != (self.task_dim,):
+            raise ValueError(f"TaskObservation: task {task!r} gives {features.shape[0]} features, expected {self.task_dim}")
+        return ((features - self.task_mean) / self.task_std).astype(self.env.observation_space.dtype or np.float32)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._features = self.task_vector(self.env.unwrapped.get_task())  # type: ignore[attr-defined]
+        return self.observation(obs), info
+
+    def observation(self, observation: Any) -> np.ndarray:
+        return np.concatenate([np.asarray(observation), self._features]).astype(self.observation_space.dtype)

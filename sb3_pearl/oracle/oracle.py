@@ -1,0 +1,130 @@
+"""The oracle: a task-aware soft actor-critic, the usual upper bound of meta-RL evaluations.
+
+SB3's SAC (Box actions) or the project's soft discrete SAC (Discrete actions), trained on the mixture of the
+training tasks exactly as :class:`~sb3_pearl.finetune.FineTune` is (a uniformly drawn training task per episode), but
+its observation carries the true task: every env it acts in is wrapped in
+:class:`~sb3_pearl.envs.task_observation.TaskObservation`, which appends the episode's task as a standardised vector.
+It is what perfect task inference could reach with the same learner, networks and env-step budget: where the oracle
+does not do the job at a budget, no meta-learner can be expected to, and where it does, a meta-learner's gap to it is
+the cost of inferring the task.
+
+It has the adaptation API of every algorithm of the project, so the meta-test serves it unchanged: its k = 0
+trajectory is already informed (the task is in the observation from the first step), :meth:`adapt` does nothing,
+and every k acts with the same policy. The meta-test wraps the env it is given with :meth:`prepare_env`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import gymnasium as gym
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.type_aliases import GymEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+from stable_baselines3.sac.policies import SACPolicy
+
+from sb3_pearl.envs.task_observation import TaskObservation
+from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.finetune.discrete_sac import DiscreteSACPolicy
+from sb3_pearl.finetune.finetune import FineTune
+
+_FINE_TUNING_KWARGS = ("adapt_gradient_steps", "adapt_batch_size", "adapt_learning_rate", "adapt_buffer_size")
+
+
+def with_task_observation(env: gym.Env | VecEnv) -> gym.Env | VecEnv:
+    """
+    ``env`` with the task in its observations (:class:`TaskObservation`), unchanged if it already has it.
+
+    :param env: a task-family env, or a ``DummyVecEnv`` of them (rebuilt around the wrapped envs)
+    :return: the env the oracle acts in
+    """
+    if isinstance(env, VecEnv):
+        if all(env.env_is_wrapped(TaskObservation)):
+            return env
+        if type(env) is DummyVecEnv:
+            return DummyVecEnv([lambda inner=inner: TaskObservation(inner) for inner in env.envs])
+        raise ValueError(
+            f"Oracle: the {type(env).__name__} given does not put the task in its observations; build its envs with "
+            "wrapper_class=sb3_pearl.envs.task_observation.TaskObservation (make_vec_env) or pass a single env"
+        )
+    if _is_wrapped(env):
+        return env
+    return TaskObservation(env)
+
+
+def _is_wrapped(env: gym.Env) -> bool:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, TaskObservation):
+            return True
+        env = env.env
+    return False
+
+
+class Oracle(FineTune):
+    """
+    Task-aware SAC: Fine-Tune's meta-training with the true task appended to the observation, no adaptation.
+
+    :param policy: ``"MlpPolicy"`` (SAC's MlpPolicy for Box, :class:`DiscreteSACPolicy` for Discrete) or a class
+    :param env: an env id or env following the task protocol (wrapped in :class:`TaskObservation` here), or a VecEnv
+        whose envs already are
+    :param n_train_tasks: training tasks: the first ``n_train_tasks`` of ``env.sample_tasks(n_train_tasks +
+        n_test_tasks, seed)`` (the same draw as PEARL / PEARL+ / Fine-Tune / MAML: a seed gives every algorithm the
+        same tasks)
+    :param n_test_tasks: held-out test tasks: the rest of that draw
+    :param train_tasks: explicit training tasks (overrides the draw)
+    :param test_tasks: explicit test tasks (overrides the draw)
+    :param max_episode_steps: the task family's episode length (``None``: the env's registered time limit)
+    :param _init_setup_model: build the networks at construction
+    :param kwargs: SAC's arguments, as :class:`~sb3_pearl.finetune.discrete_sac.DiscreteSAC` takes them
+        (``learning_rate``, ``buffer_size``, ``batch_size``, ``gamma``, ``ent_coef``, ``policy_kwargs``, ``seed``, ...)
+    """
+
+    # Every Oracle zip holds these (load() refuses one without them, e.g. a Fine-Tune zip: its policy sees no task).
+    saved_data_keys: ClassVar[tuple[str, ...]] = ("train_tasks", "task_aware")
+
+    def __init__(
+        self,
+        policy: str | type[SACPolicy] | type[DiscreteSACPolicy],
+        env: GymEnv | str,
+        *,
+        n_train_tasks: int = 100,
+        n_test_tasks: int = 30,
+        train_tasks: list[Task] | None = None,
+        test_tasks: list[Task] | None = None,
+        max_episode_steps: int | None = None,
+        _init_setup_model: bool = True,
+        **kwargs: Any,
+    ):
+        given = sorted(set(kwargs) & set(_FINE_TUNING_KWARGS))
+        if given:
+            raise ValueError(f"Oracle does not fine-tune (it is told the task): remove {given}")
+        self.task_aware = True
+        super().__init__(
+            policy,
+            env,
+            n_train_tasks=n_train_tasks,
+            n_test_tasks=n_test_tasks,
+            train_tasks=train_tasks,
+            test_tasks=test_tasks,
+            max_episode_steps=max_episode_steps,
+            adapt_gradient_steps=0,
+            _init_setup_model=_init_setup_model,
+            **kwargs,
+        )
+
+    @staticmethod
+    def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
+        """SB3's wrapping (Monitor, DummyVecEnv) around the env with the task in its observation."""
+        return BaseAlgorithm._wrap_env(with_task_observation(env), verbose, monitor_wrapper)  # type: ignore[arg-type]
+
+    def prepare_env(self, env: gym.Env | VecEnv) -> gym.Env | VecEnv:
+        """
+        The env as the oracle acts in it: ``env`` with the task in its observation (the meta-test calls this).
+
+        :param env: a task-family env or a VecEnv of one
+        :return: the wrapped env
+        """
+        return with_task_observation(env)
+
+    def adapt(self) -> None:
+        """Nothing to adapt: the oracle is told the task."""
