@@ -40,6 +40,9 @@ def check_model_spaces(model: BaseAlgorithm, env: Any, model_path: str, env_id: 
     :param model_path: for the message
     :param env_id: for the message
     """
+    prepare_env = getattr(model, "prepare_env", None)
+    if callable(prepare_env):  # the env as the model acts in it (the oracle: the task in the observation)
+        env = prepare_env(env)
     for kind in ("observation_space", "action_space"):
         model_space, env_space = getattr(model, kind), getattr(env, kind)
         same = type(model_space) is type(env_space) and getattr(model_space, "shape", None) == getattr(

@@ -1,7 +1,7 @@
 """The project's algorithms in ``rl_zoo3``: the registry, the constructor kwargs of each and the Optuna samplers.
 
-:func:`register_algos` puts ``pearl`` / ``pearlplus`` (and ``finetune`` / ``maml`` when
-:mod:`sb3_pearl` exports ``FineTune`` / ``MAML``) in ``rl_zoo3.ALGOS`` and the PEARL / PEARL+
+:func:`register_algos` puts ``pearl`` / ``pearlplus`` (and ``finetune`` / ``maml`` / ``oracle`` when
+:mod:`sb3_pearl` exports ``FineTune`` / ``MAML`` / ``Oracle``) in ``rl_zoo3.ALGOS`` and the PEARL / PEARL+
 hyperparameter samplers in ``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER`` (``-optimize``), through
 :func:`sb3_pearl.zoo.rl_zoo3_coupling.register_algorithms`.
 """
@@ -101,7 +101,7 @@ def register_algos() -> dict[str, type[BaseAlgorithm]]:
     :return: the registered algorithms by zoo name
     """
     algos: dict[str, type[BaseAlgorithm]] = {"pearl": PEARL, "pearlplus": PEARLPlus}
-    for name, attribute in (("finetune", "FineTune"), ("maml", "MAML")):
+    for name, attribute in (("finetune", "FineTune"), ("maml", "MAML"), ("oracle", "Oracle")):
         algo = getattr(sb3_pearl, attribute, None)
         if algo is not None:
             algos[name] = algo

@@ -1,0 +1,137 @@
+"""The oracle (task-aware SAC) and the task vector it is told, on every family."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+import sb3_pearl  # noqa: F401  (registers the families)
+from sb3_pearl import FineTune, Oracle
+from sb3_pearl.envs import FAMILIES
+from sb3_pearl.envs.task_observation import TaskObservation, task_features
+from sb3_pearl.evaluation.meta_test import meta_test
+from sb3_pearl.oracle.oracle import with_task_observation
+
+FLAT_FAMILIES = list(FAMILIES)
+TINY = {"learning_starts": 50, "batch_size": 16, "policy_kwargs": {"net_arch": [16]}, "n_train_tasks": 4, "n_test_tasks": 2}
+
+
+@pytest.mark.parametrize("env_id", FLAT_FAMILIES)
+def test_task_vector_for_every_family(env_id: str) -> None:
+    """The observation is the family's, then the standardised task of the episode, which a new task changes at reset."""
+    env = TaskObservation(gym.make(env_id))
+    base = env.unwrapped
+    raw_dim = base.observation_space.shape[0]
+    assert env.observation_space.shape == (raw_dim + env.task_dim,)
+    first, second = base.sample_tasks(2, seed=123)
+    base.set_task(first)
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    expected = (task_features(base, first) - env.task_mean) / env.task_std
+    np.testing.assert_allclose(obs[raw_dim:], expected, rtol=1e-5, atol=1e-5)
+    # a task set during the episode takes effect at the next reset, not in this episode's observations
+    base.set_task(second)
+    obs, *_ = env.step(env.action_space.sample())
+    np.testing.assert_allclose(obs[raw_dim:], expected, rtol=1e-5, atol=1e-5)
+    obs, _ = env.reset(seed=1)
+    assert not np.allclose(obs[raw_dim:], expected)
+    np.testing.assert_allclose(obs[raw_dim:], (task_features(base, second) - env.task_mean) / env.task_std, rtol=1e-5)
+    env.close()
+
+
+def test_task_vector_is_standardised_over_the_family_distribution() -> None:
+    env = TaskObservation(gym.make("HighwayMergeMeta-v0"))
+    vectors = np.stack([env.task_vector(task) for task in env.unwrapped.sample_tasks(1000, seed=0)])
+    np.testing.assert_allclose(vectors.mean(axis=0), 0.0, atol=1e-5)
+    np.testing.assert_allclose(vectors.std(axis=0), 1.0, atol=1e-4)
+
+
+def test_angles_are_continuous_features() -> None:
+    """An Ant target just below 2 pi and one at 0 are the same velocity: their features agree (theta itself would not)."""
+    base = gym.make("AntVelMeta-v0").unwrapped
+    near_zero = task_features(base, {"direction": 0.0, "speed": 2.0})
+    near_two_pi = task_features(base, {"direction": 2 * math.pi - 1e-6, "speed": 2.0})
+    np.testing.assert_allclose(near_zero, near_two_pi, atol=1e-5)
+    np.testing.assert_allclose(near_zero, [2.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(task_features(base, {"direction": math.pi / 2, "speed": 1.0}), [0.0, 1.0], atol=1e-9)
+    ant_dir = gym.make("AntDirMeta-v0").unwrapped
+    np.testing.assert_allclose(task_features(ant_dir, {"direction": math.pi}), [-1.0, 0.0], atol=1e-9)
+
+
+def test_task_observation_refuses_what_it_cannot_serve() -> None:
+    with pytest.raises(ValueError, match="task-family env"):
+        TaskObservation(gym.make("Pendulum-v1"))
+    with pytest.raises(ValueError, match="flat Box observation"):
+        TaskObservation(_DictObservation(gym.make("PointGoalMeta-v0")))
+
+
+class _DictObservation(gym.ObservationWrapper):
+    """A family env whose observation is a dict (as gymnasium-robotics' goal envs before flattening)."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.observation_space = gym.spaces.Dict({"observation": env.observation_space})
+
+    def observation(self, observation: np.ndarray) -> dict[str, np.ndarray]:
+        return {"observation": observation}
+
+
+def test_oracle_learns_saves_loads_and_acts_identically(tmp_path) -> None:
+    model = Oracle("MlpPolicy", "PointGoalMeta-v0", seed=0, **TINY)
+    assert model.observation_space.shape == (4,)  # position (2) + goal (2)
+    model.learn(300)
+    path = tmp_path / "oracle.zip"
+    model.save(path)
+    loaded = Oracle.load(path)
+    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
+    obs = np.stack([model.observation_space.sample() for _ in range(8)])
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+    # a Fine-Tune zip is not an oracle's (its policy sees no task)
+    finetune = FineTune("MlpPolicy", "PointGoalMeta-v0", seed=0, **TINY)
+    finetune.save(tmp_path / "finetune.zip")
+    with pytest.raises(ValueError, match="holds a FineTune model, not a Oracle one"):
+        Oracle.load(tmp_path / "finetune.zip")
+
+
+def test_oracle_meta_test_on_the_plain_env_is_informed_and_does_not_adapt() -> None:
+    """The meta-test gives the oracle the family env as is; it acts told the task, the same policy at every k."""
+    model = Oracle("MlpPolicy", "PointGoalMeta-v0", seed=0, **TINY)
+    model.learn(200)
+    env = gym.make("PointGoalMeta-v0")
+    result = meta_test(model, env, model.test_tasks, n_adapt=2, n_repeats=1, seed=0, crn_seed=5)
+    assert len(result.rows) == 2 * 3 and model.n_observed == 3 * 20  # every trajectory observed (20 steps each) ...
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    model.adapt()  # ... and adapt() changes nothing
+    assert all(torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
+    assert model.adapted_policy is model.policy
+    # the actions depend on the task: the same position with two goals gives two actions
+    wrapped = TaskObservation(gym.make("PointGoalMeta-v0"))
+    a, b = (np.concatenate([[0.0, 0.0], wrapped.task_vector({"goal": goal})]) for goal in ([1.0, 1.0], [-1.0, -1.0]))
+    actions = model.predict(np.stack([a, b]).astype(np.float32), deterministic=True)[0]
+    assert not np.allclose(actions[0], actions[1])
+
+
+def test_oracle_discrete_actions_on_highway_merge() -> None:
+    model = Oracle("MlpPolicy", "HighwayMergeMeta-v0", seed=0, **TINY)
+    assert model.observation_space.shape == (24 + 2,)  # kinematics + (density, speed)
+    model.learn(120)
+    action, _ = model.predict(model.observation_space.sample(), deterministic=True)
+    assert model.action_space.contains(int(action))
+
+
+def test_oracle_refuses_fine_tuning_settings_and_unwrappable_vec_envs() -> None:
+    with pytest.raises(ValueError, match=r"does not fine-tune .*adapt_gradient_steps"):
+        Oracle("MlpPolicy", "PointGoalMeta-v0", adapt_gradient_steps=10)
+    venv = VecNormalize(DummyVecEnv([lambda: gym.make("PointGoalMeta-v0")]))
+    with pytest.raises(ValueError, match="wrapper_class"):
+        with_task_observation(venv)
+    # a DummyVecEnv of family envs is rebuilt around wrapped envs; an already wrapped one is kept
+    plain = DummyVecEnv([lambda: gym.make("PointGoalMeta-v0")])
+    rebuilt = with_task_observation(plain)
+    assert rebuilt.observation_space.shape == (4,)
+    assert with_task_observation(rebuilt) is rebuilt
