@@ -18,9 +18,9 @@ the PEARL runs: the same task draw per seed), budgets in the ``cpu`` preset's ``
 Order: Ant3D-vel and Walker2D-vel seed 0 first (they decide what the rest means), then their seeds 1-2, Merge, and
 HalfCheetah-Vel last (its cost, stated below the docstring, is the largest).
 
-**The measure** (velocity families): the *velocity error* of a run is, on its held-out test tasks (the model's own
-``test_tasks``, 10 on Walker and Ant, 30 on the cheetah), with 2 repeats per task, k = 0..5, deterministic actions and
-the experiment's eval seed as common random numbers, each trajectory's mean over its steps of the velocity error
+**The measure** (velocity families): the *velocity error* of a run is, on the held-out tasks of its own meta-test (20
+tasks drawn with the experiment's eval seed, :func:`~sb3_pearl.evaluation.held_out.model_test_tasks`), with 2 repeats
+per task, k = 0..5, deterministic actions and the eval seed as common random numbers, each trajectory's mean over its steps of the velocity error
 (``-info["reward_forward"]``: ``|v - v*|`` on Walker and the cheetah, ``||v_xy - v*||`` on Ant), averaged over the
 trajectories with k >= 1 (for the oracle, whose policy is the same at every k, the same trajectories). A family's value
 for an algorithm is the mean over its seeds. It is reported per target-speed bin as well (Walker and the cheetah:
