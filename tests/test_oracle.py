@@ -16,6 +16,7 @@ from sb3_pearl.envs import FAMILIES
 from sb3_pearl.envs.task_observation import TaskObservation, task_features
 from sb3_pearl.evaluation.meta_test import meta_test
 from sb3_pearl.oracle.oracle import with_task_observation
+from sb3_pearl.reproduce.velocity import constant_references, family_verdicts, geometric_median
 
 FLAT_FAMILIES = list(FAMILIES)
 TINY = {"learning_starts": 50, "batch_size": 16, "policy_kwargs": {"net_arch": [16]}, "n_train_tasks": 4, "n_test_tasks": 2}
@@ -135,3 +136,55 @@ def test_oracle_refuses_fine_tuning_settings_and_unwrappable_vec_envs() -> None:
     rebuilt = with_task_observation(plain)
     assert rebuilt.observation_space.shape == (4,)
     assert with_task_observation(rebuilt) is rebuilt
+
+
+# ----------------------------------------------------------------------------------------------
+# Competence against the oracle: the held-out velocity measure and its rules
+# ----------------------------------------------------------------------------------------------
+def test_geometric_median_and_constant_references_by_hand() -> None:
+    # 1-D: the median; the best constant's mean error on {0, 1, 3} is (1 + 0 + 2) / 3
+    refs = constant_references(np.array([[0.0], [1.0], [3.0]]))
+    assert refs["constant"] == [1.0]
+    assert refs["best_constant"] == pytest.approx(1.0) and refs["standing"] == pytest.approx(4.0 / 3.0)
+    # 2-D, targets symmetric around the origin (any direction, one speed): the best constant is to stand still
+    square = np.array([[2.0, 0.0], [0.0, 2.0], [-2.0, 0.0], [0.0, -2.0]])
+    refs = constant_references(square)
+    np.testing.assert_allclose(refs["constant"], [0.0, 0.0], atol=1e-6)
+    assert refs["best_constant"] == pytest.approx(2.0) == refs["standing"]
+    # three collinear points: the middle one (a data point, where Weiszfeld's weights are undefined)
+    np.testing.assert_allclose(geometric_median(np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0]])), [1.0, 0.0], atol=1e-6)
+
+
+def _record(seed: int, errors: dict[int, float], targets: list[list[float]]) -> dict:
+    rows = [
+        {"task": task, "repeat": 0, "k": k, "error": errors[k] + 0.1 * task, "length": 200, "violated": False}
+        for task in range(len(targets))
+        for k in errors
+    ]
+    return {"seed": seed, "targets": targets, "rows": rows}
+
+
+def test_competence_rules_against_the_oracle() -> None:
+    """Oracle error 0.3 against a best constant of 1.0 (learnable); PEARL 0.4 competent, PEARL+ 0.8 not (> 0.75 C)."""
+    targets = [[0.0], [1.0], [3.0]]  # best constant 1.0 (the median)
+    shift = 0.1  # the mean of 0.1 * task over tasks 0..2
+    records = {
+        "oracle": [_record(0, {0: 0.3 - shift, 1: 0.3 - shift}, targets)],
+        "pearl": [_record(0, {0: 1.0, 1: 0.4 - shift}, targets), _record(1, {0: 1.0, 1: 0.4 - shift}, targets)],
+        "pearlplus": [_record(0, {0: 1.0, 1: 0.8 - shift}, targets)],
+    }
+    decision = family_verdicts("walker2d-vel-long", records)
+    assert decision.references["best_constant"] == pytest.approx(1.0)
+    assert decision.mean("oracle") == pytest.approx(0.3) and decision.mean("pearl") == pytest.approx(0.4)
+    assert decision.mean("pearl", "prior") == pytest.approx(1.1)
+    assert decision.learnable == "learnable"
+    assert decision.competent == {"pearl": "competent", "pearlplus": "not competent"}
+    # per target-speed bin ([0, 1): task 0; >= 1: tasks 1 and 2)
+    assert decision.runs["pearl"][0].by_bin == pytest.approx({"[0, 1)": 0.3, ">= 1": 0.45})
+    # an oracle above half the best constant: the family is not learnable at the budget
+    records["oracle"] = [_record(0, {0: 0.6 - shift, 1: 0.6 - shift}, targets)]
+    assert family_verdicts("walker2d-vel-long", records).learnable == "not learnable"
+    # records measured on other tasks are refused, not mixed
+    records["pearlplus"] = [_record(0, {0: 1.0, 1: 0.5}, [[0.0], [2.0], [3.0]])]
+    with pytest.raises(ValueError, match="other held-out tasks"):
+        family_verdicts("walker2d-vel-long", records)

@@ -20,12 +20,12 @@ HalfCheetah-Vel last (its cost, stated below the docstring, is the largest).
 
 **The measure** (velocity families): the *velocity error* of a run is, on the held-out tasks of its own meta-test (20
 tasks drawn with the experiment's eval seed, :func:`~sb3_pearl.evaluation.held_out.model_test_tasks`), with 2 repeats
-per task, k = 0..5, deterministic actions and the eval seed as common random numbers, each trajectory's mean over its steps of the velocity error
-(``-info["reward_forward"]``: ``|v - v*|`` on Walker and the cheetah, ``||v_xy - v*||`` on Ant), averaged over the
-trajectories with k >= 1 (for the oracle, whose policy is the same at every k, the same trajectories). A family's value
-for an algorithm is the mean over its seeds. It is reported per target-speed bin as well (Walker and the cheetah:
-v* <= 1 and v* > 1 m/s; Ant: speed in [0, 1), [1, 2), [2, 3]), because a 1.6 s Walker episode from rest has an
-error floor of its own on fast targets.
+per task, k = 0..5, deterministic actions and the eval seed as common random numbers, each trajectory's mean over its
+steps of the velocity error (``-info["reward_forward"]``: ``|v - v*|`` on Walker and the cheetah, ``||v_xy - v*||`` on
+Ant), averaged over the trajectories with k >= 1 (for the oracle, whose policy is the same at every k, the same
+trajectories). A family's value for an algorithm is the mean over its seeds. It is reported per target-speed bin as
+well (Walker and the cheetah: v* <= 1 and v* > 1 m/s; Ant: speed in [0, 1), [1, 2), [2, 3]), because a 1.6 s Walker
+episode from rest has an error floor of its own on fast targets.
 
 Two task-independent references on the same held-out tasks, computed from the tasks alone:
 
@@ -58,7 +58,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from sb3_pearl.experiments.families import HALF_CHEETAH_VEL, HIGHWAY_MERGE
+from sb3_pearl.experiments.families import ANT3D_VEL, HALF_CHEETAH_VEL, HIGHWAY_MERGE, WALKER2D_VEL
 from sb3_pearl.experiments.merge_fixed_entropy import MERGE_TABLE1
 from sb3_pearl.experiments.pearl_reference import ANT3D_VEL_LONG, PEARL_REFERENCE, WALKER2D_VEL_LONG
 from sb3_pearl.experiments.spec import Experiment, Variant
@@ -141,5 +141,7 @@ SPEED_BINS: dict[str, tuple[float, ...]] = {
     WALKER2D_VEL_LONG.name: (0.0, 1.0, float("inf")),
     HALF_CHEETAH_VEL.name: (0.0, 1.0, float("inf")),
     ANT3D_VEL_LONG.name: (0.0, 1.0, 2.0, float("inf")),
+    WALKER2D_VEL.name: (0.0, 1.0, float("inf")),  # Table I's shorter runs, measured the same way
+    ANT3D_VEL.name: (0.0, 1.0, 2.0, float("inf")),
 }
 """Target-speed bin edges of the per-bin velocity error, per family."""

@@ -123,6 +123,17 @@ def build_parser() -> argparse.ArgumentParser:
     remeasure.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
     remeasure.add_argument("--force", action="store_true", help="remeasure runs that already have the record")
 
+    velocity = sub.add_parser(
+        "velocity",
+        help="the held-out velocity error of finished runs on the velocity families (velocity_held_out.json), "
+        "for the competence rules against the oracle",
+    )
+    velocity.add_argument("experiments", nargs="+", help="experiments (e.g. oracle walker-table1 pearl-reference)")
+    velocity.add_argument("--family", nargs="+", default=None, help="families (default: every velocity family)")
+    velocity.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 (default: each experiment's)")
+    velocity.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
+    velocity.add_argument("--force", action="store_true", help="measure runs that already have the record")
+
     one = sub.add_parser("run-one", help=argparse.SUPPRESS)  # what each child process of `run` executes
     one.add_argument("--experiment", required=True)
     one.add_argument("--family", required=True)
@@ -285,6 +296,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             chosen = parse_seeds(args.seeds) if args.seeds is not None else None
             written = remeasure_experiments(args.results_dir, names, MERGE_REMEASURE, chosen, args.force)
             print(f"{len(written)} run(s) remeasured")
+            return 0
+        if args.command == "velocity":
+            import torch as th
+
+            from sb3_pearl.reproduce.velocity import measure_experiments
+
+            th.set_num_threads(1)
+            for name in args.experiments:
+                get_experiment(name)  # an unknown name fails here, with the known ones
+            chosen = parse_seeds(args.seeds) if args.seeds is not None else None
+            written = measure_experiments(args.results_dir, args.experiments, chosen, args.family, args.force)
+            print(f"{len(written)} run(s) measured")
             return 0
     except ValueError as error:
         print(f"error: {error}", file=sys.stderr)
