@@ -6,17 +6,20 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE, RULES, PremiseGate
 from sb3_pearl.reproduce.layout import RunKey, run_dir
 from sb3_pearl.reproduce.report import build_report
+from sb3_pearl.reproduce.stats import sign_flip_interval, sign_flip_p_value
 from sb3_pearl.reproduce.table1_verdicts import (
     AS_GOOD,
     INCONCLUSIVE,
     NOT_TESTED,
     SAFER,
     WORSE,
+    decide_confirmation,
     decide_family,
     decision_lines,
     reductions,
@@ -178,3 +181,41 @@ def test_a_result_that_is_not_its_folders_run_is_refused(tmp_path: Path) -> None
         (copy / file.name).write_bytes(file.read_bytes())
     with pytest.raises(ValueError, match="seed 'seed0' \\(its folder says 'seed1'\\)"):
         decide_family("highway-merge", tmp_path)
+
+
+def test_sign_flip_interval_by_hand() -> None:
+    # six positive differences: only the two all-same-sign patterns of 64 are as extreme, p = 2 / 64 = 0.031
+    assert sign_flip_p_value(np.array([1.0, 2, 3, 4, 5, 6])) == pytest.approx(2 / 64)
+    # at 4 seeds the smallest p-value is 2 / 16 > 5%: no shift is rejected, the interval is the quantity's range
+    assert sign_flip_interval([0.1, 0.2, 0.3, 0.4], bounds=(-1.0, 1.0))[1:3] == (-1.0, 1.0)
+    # ten differences: a finite interval holding the mean, inside the data's range, mirrored for mirrored data
+    values = np.array([-3.2, -1.0, -5.0, 2.0, -4.0, -6.0, -1.0, -2.0, 1.3, -3.0])
+    interval = sign_flip_interval(values)
+    assert values.min() < interval.low < interval.mean < interval.high < values.max()
+    mirrored = sign_flip_interval(-values)
+    assert (mirrored.low, mirrored.high) == pytest.approx((-interval.high, -interval.low))
+    # the bounds are the test's: just inside them the shift is not rejected, just outside it is
+    assert sign_flip_p_value(values, interval.high - 1e-6) > 0.05 >= sign_flip_p_value(values, interval.high + 1e-3)
+
+
+def test_the_confirmation_is_decided_on_the_fresh_seeds_alone_and_pending_until_ten(tmp_path: Path) -> None:
+    # merge-table1 seeds 0-9: PEARL+ much safer; confirmation seeds 10-19: no difference at all
+    (owner, name), (plus_owner, plus) = MERGE
+    for seed in range(10):
+        write_run(tmp_path, owner, "highway-merge", name, seed, summary(0.5, 0.5, -9), summary(0.10, 0.0, -7.6))
+        write_run(tmp_path, plus_owner, "highway-merge", plus, seed, summary(0.5, 0.5, -9), summary(0.01, 0.0, -7.6))
+    for seed in range(10, 19):  # 9 of 10 pairs
+        rate = 0.05 + 0.01 * (seed % 3)
+        write_run(tmp_path, "merge-confirm", "highway-merge", name, seed, summary(0.5, 0.5, -9), summary(rate, 0.0, -7.6))
+        write_run(tmp_path, "merge-confirm", "highway-merge", plus, seed, summary(0.5, 0.5, -9), summary(rate, 0.0, -7.6))
+    pending = decide_confirmation(tmp_path)
+    assert pending.prior_verdict.startswith("pending (9 of 10 pairs finished)")
+    for variant in (name, plus):
+        write_run(tmp_path, "merge-confirm", "highway-merge", variant, 19, summary(0.5, 0.5, -9), summary(0.06, 0.0, -7.6))
+    confirmation = decide_confirmation(tmp_path)
+    assert confirmation.paired_seeds == list(range(10, 20))
+    assert confirmation.prior_interval is not None and confirmation.prior_interval.mean == pytest.approx(0.0)
+    assert confirmation.prior_verdict == INCONCLUSIVE  # the earlier seeds' effect does not leak in
+    pooled = decide_confirmation(tmp_path, pooled=True)
+    assert pooled.paired_seeds == list(range(20))
+    assert pooled.prior_interval is not None and pooled.prior_interval.mean == pytest.approx(-0.045)

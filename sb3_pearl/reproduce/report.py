@@ -291,7 +291,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     """
     from sb3_pearl.reproduce.figures import plot_curves, plot_decisions, plot_group, plot_prior_selection, plot_seeds
     from sb3_pearl.reproduce.remeasured_tables import remeasured_section
-    from sb3_pearl.reproduce.table1_verdicts import decide, decision_section
+    from sb3_pearl.reproduce.table1_verdicts import decide, decide_confirmation, decision_section
 
     groups = load_groups(results_dir)
     out = [
@@ -310,6 +310,20 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         out += decision_section(decisions)
         if plot_decisions(decisions, Path(figures_dir) / "table1_decided.png"):
             out += [f"![k = 0 violation rate per seed, Table I decided]({figures_link.rstrip('/')}/table1_decided.png)", ""]
+    confirmation = [decide_confirmation(results_dir), decide_confirmation(results_dir, pooled=True)]
+    if any(decision.runs[decision.variants[0]] for decision in confirmation):
+        out += [
+            "### Highway-Merge confirmed on fresh seeds: the same rules on seeds 10-19 alone",
+            "",
+            "Rules committed before the runs: `sb3_pearl/experiments/merge_confirm.py` (merge-table1's variants, budget, "
+            "held-out tasks and re-measure; Table I's rules; decided on seeds 10-19 alone, the pooled 20 seeds secondary). "
+            "The t interval decides; the sign-flip permutation interval beside it assumes only differences symmetric "
+            "about their mean (not normal), and never leaves the range a rate difference can take. Multiplicity: the "
+            "headline tests two rules on two families (four verdicts) at 95% each, unadjusted; with a Bonferroni "
+            "correction each would need a 98.75% interval.",
+            "",
+        ]
+        out += decision_section(confirmation)
     out += remeasured_section(results_dir)
     for (experiment_name, budget, family), group in groups.items():
         experiment = EXPERIMENTS.get(experiment_name)

@@ -22,7 +22,7 @@ from sb3_pearl.experiments import get_experiment
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
 from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
-from sb3_pearl.reproduce.stats import Interval, paired_differences, t_interval
+from sb3_pearl.reproduce.stats import Interval, paired_differences, sign_flip_interval, t_interval
 
 PAPER_KS = (0, 1, 3, 5)
 SAFER, LESS_SAFE = "safer", "less safe"
@@ -62,6 +62,9 @@ class FamilyDecision:
     adapted_interval: Interval | None = None
     adapted_margin: float = math.nan
     adapted_verdict: str = PENDING
+    prior_flip: Interval | None = None
+    adapted_flip: Interval | None = None
+    title: str = ""
     notes: list[str] = field(default_factory=list)
 
 
@@ -112,29 +115,104 @@ def _interval_side(interval: Interval, bound: float) -> int:
     return 0
 
 
-def decide_family(family: str, results_dir: str | os.PathLike[str], rules: DecisionRules = RULES) -> FamilyDecision:
+def load_runs(
+    experiment_name: str, family: str, names: tuple[str, str], seeds: tuple[int, ...], results_dir: str | os.PathLike[str]
+) -> dict[str, dict[int, RunNumbers]]:
     """
-    Apply the rules to one decided family (module docstring).
+    The finished runs of two variants of an experiment on one family (Highway-Merge: re-measured runs only).
 
-    :param family: a family name of :data:`~sb3_pearl.experiments.table1_rules.DECIDED`
+    :param experiment_name: the experiment (shared variants are read from their owners' folders)
+    :param family: the family name
+    :param names: the two variants, the reference first
+    :param seeds: the seeds to read
     :param results_dir: root of the results layout
-    :param rules: the rules
-    :return: the decision
+    :return: variant -> seed -> numbers
     """
-    experiment_name, (reference, variant) = DECIDED[family]
     experiment = get_experiment(experiment_name)
-    first, extended = rules.extend_seeds.get(family, (experiment.seeds, experiment.seeds))
-    seeds = tuple(sorted(set(experiment.seeds) | set(extended)))
     read_remeasured = family == "highway-merge"
     runs: dict[str, dict[int, RunNumbers]] = {}
-    for name in (reference, variant):
+    for name in names:
         runs[name] = {}
         for seed in seeds:
             folder = run_dir(results_dir, RunKey(experiment.owner(name), family, name, seed))
             numbers = load_run(folder, read_remeasured)
             if numbers is not None:
                 runs[name][seed] = numbers
-    decision = FamilyDecision(family, experiment_name, (reference, variant), tuple(experiment.seeds), runs, [])
+    return runs
+
+
+def decide_family(
+    family: str,
+    results_dir: str | os.PathLike[str],
+    rules: DecisionRules = RULES,
+    seeds: tuple[int, ...] | None = None,
+) -> FamilyDecision:
+    """
+    Apply the rules to one decided family (module docstring).
+
+    :param family: a family name of :data:`~sb3_pearl.experiments.table1_rules.DECIDED`
+    :param results_dir: root of the results layout
+    :param rules: the rules
+    :param seeds: decide on these seeds only (None: the declared ones, with the extension rule)
+    :return: the decision
+    """
+    experiment_name, names = DECIDED[family]
+    experiment = get_experiment(experiment_name)
+    first, extended = rules.extend_seeds.get(family, (experiment.seeds, experiment.seeds))
+    if seeds is not None:
+        first = extended = seeds
+    chosen = tuple(sorted(set(first) | set(extended)))
+    runs = load_runs(experiment_name, family, names, chosen, results_dir)
+    decision = FamilyDecision(family, experiment_name, names, tuple(first), runs, [])
+    return apply_rules(decision, rules, first, extended)
+
+
+def decide_confirmation(results_dir: str | os.PathLike[str], pooled: bool = False) -> FamilyDecision:
+    """
+    Highway-Merge's fresh-seed confirmation (:mod:`sb3_pearl.experiments.merge_confirm`): Table I's rules on seeds
+    10-19 alone, "pending" until all 10 pairs are in; ``pooled``: on the 20 seeds of ``merge-table1`` and
+    ``merge-confirm`` together (secondary).
+
+    :param results_dir: root of the results layout
+    :param pooled: the pooled 20-seed decision instead
+    :return: the decision
+    """
+    from sb3_pearl.experiments.merge_confirm import CONFIRM_RULES, CONFIRMED_FAMILY, CONFIRMED_VARIANTS, MERGE_CONFIRM
+
+    runs = load_runs(MERGE_CONFIRM.name, CONFIRMED_FAMILY, CONFIRMED_VARIANTS, MERGE_CONFIRM.seeds, results_dir)
+    seeds = MERGE_CONFIRM.seeds
+    title = "Highway-Merge confirmation, fresh seeds 10-19"
+    if pooled:
+        original_name, _ = DECIDED[CONFIRMED_FAMILY]
+        original = get_experiment(original_name)
+        earlier = load_runs(original_name, CONFIRMED_FAMILY, CONFIRMED_VARIANTS, original.seeds, results_dir)
+        runs = {name: {**earlier[name], **runs[name]} for name in CONFIRMED_VARIANTS}
+        seeds = tuple(original.seeds) + tuple(seeds)
+        title = "Highway-Merge pooled, seeds 0-19 (secondary)"
+    decision = FamilyDecision(CONFIRMED_FAMILY, MERGE_CONFIRM.name, CONFIRMED_VARIANTS, seeds, runs, [], title=title)
+    decision = apply_rules(decision, CONFIRM_RULES, seeds, seeds)
+    paired = len(decision.paired_seeds)
+    if not pooled and paired < len(seeds):
+        pending = f"{PENDING} ({paired} of {len(seeds)} pairs finished)"
+        decision.prior_verdict = decision.adapted_verdict = pending
+    return decision
+
+
+def apply_rules(
+    decision: FamilyDecision, rules: DecisionRules, first: tuple[int, ...], extended: tuple[int, ...]
+) -> FamilyDecision:
+    """
+    The premise gate, "safer prior" and "adapted as good" on the runs of ``decision`` (module docstring), with the
+    sign-flip permutation intervals beside the t intervals (reported; the t intervals decide).
+
+    :param decision: the decision, its runs loaded
+    :param rules: the rules
+    :param first: the seeds the verdict is first decided on
+    :param extended: the seeds after the extension rule (``first`` where there is none)
+    :return: ``decision``, filled in
+    """
+    family, runs = decision.family, decision.runs
+    reference, variant = decision.variants
     paired = sorted(set(runs[reference]) & set(runs[variant]))
     decision.paired_seeds = paired
     pearl = runs[reference]
@@ -149,16 +227,22 @@ def decide_family(family: str, results_dir: str | os.PathLike[str], rules: Decis
         return decision
     if decision.gate == "fails":
         decision.prior_verdict = decision.adapted_verdict = NOT_TESTED
-    prior_diff = paired_differences(
-        {s: runs[variant][s].summary[prior_k]["violation_rate"] for s in paired},
-        {s: pearl[s].summary[prior_k]["violation_rate"] for s in paired},
+    prior_diff = list(
+        paired_differences(
+            {s: runs[variant][s].summary[prior_k]["violation_rate"] for s in paired},
+            {s: pearl[s].summary[prior_k]["violation_rate"] for s in paired},
+        ).values()
     )
-    decision.prior_interval = t_interval(list(prior_diff.values()), rules.confidence)
-    return_diff = paired_differences(
-        {s: runs[variant][s].summary[adapted_k]["return_mean"] for s in paired},
-        {s: pearl[s].summary[adapted_k]["return_mean"] for s in paired},
+    decision.prior_interval = t_interval(prior_diff, rules.confidence)
+    decision.prior_flip = sign_flip_interval(prior_diff, rules.confidence, bounds=(-1.0, 1.0))
+    return_diff = list(
+        paired_differences(
+            {s: runs[variant][s].summary[adapted_k]["return_mean"] for s in paired},
+            {s: pearl[s].summary[adapted_k]["return_mean"] for s in paired},
+        ).values()
     )
-    decision.adapted_interval = t_interval(list(return_diff.values()), rules.confidence)
+    decision.adapted_interval = t_interval(return_diff, rules.confidence)
+    decision.adapted_flip = sign_flip_interval(return_diff, rules.confidence)
     pearl_return = sum(pearl[s].summary[adapted_k]["return_mean"] for s in paired) / len(paired)
     decision.adapted_margin = rules.return_margin_fraction * abs(pearl_return)
     complete = set(first) <= set(paired)
@@ -171,7 +255,7 @@ def decide_family(family: str, results_dir: str | os.PathLike[str], rules: Decis
         decision.notes.append(
             f"provisional: {len(paired)} of the {len(first)} first seeds paired ({sorted(set(first) - set(paired))} missing)"
         )
-    elif family in rules.extend_seeds and set(paired) < set(extended):
+    elif family in rules.extend_seeds and set(extended) != set(first) and set(paired) < set(extended):
         if INCONCLUSIVE in (decision.prior_verdict, decision.adapted_verdict):
             decision.notes.append(f"a verdict is inconclusive at {len(first)} seeds: by the rule, extend to seeds {extended}")
         else:
@@ -238,6 +322,15 @@ def _interval(interval: Interval | None, scale: float = 1.0, digits: int = 1) ->
     return f"{mean} [{scale * interval.low:+.{digits}f}, {scale * interval.high:+.{digits}f}]"
 
 
+def _bounds(interval: Interval | None, scale: float = 1.0, digits: int = 1) -> str:
+    """``[low, high]`` of an interval (the mean is the t interval's, given beside it)."""
+    if interval is None or interval.n < 2 or math.isnan(interval.low):
+        return "-"
+    if math.isinf(interval.low) or math.isinf(interval.high):
+        return f"unbounded: no shift is rejected at {interval.n} seeds"
+    return f"[{interval.low * scale:+.{digits}f}, {interval.high * scale:+.{digits}f}]"
+
+
 def _mean(runs: dict[int, RunNumbers], k: int, key: str, own: bool = False) -> float:
     values = [(run.own_summary if own else run.summary)[k][key] for run in runs.values() if k in run.summary]
     return sum(values) / len(values) if values else math.nan
@@ -265,7 +358,8 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             else "the runs' own meta-test: 20 held-out tasks x 10 prior draws, common random numbers"
         )
         out += [
-            f"#### {experiment.family(decision.family).title} ({decision.experiment}; paired seeds {decision.paired_seeds})",
+            f"#### {decision.title or experiment.family(decision.family).title} ({decision.experiment}; paired seeds "
+            f"{decision.paired_seeds})",
             "",
             f"Numbers: {source}.",
             "",
@@ -325,10 +419,11 @@ def decision_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> li
     out = [
         f"- **Premise gate** ({rules.gates[decision.family].describe()}): **{decision.gate}** (PEARL k = 0 "
         f"{_pct(k0)}%, k = 5 {_pct(k5)}%).",
-        f"- **Safer prior**: paired k = 0 difference {_interval(decision.prior_interval, 100)} points: "
-        f"**{decision.prior_verdict}**.",
-        f"- **Adapted as good**: paired k = 5 return difference {_interval(decision.adapted_interval, 1, 2)} against "
-        f"the margin -{_num(decision.adapted_margin)}: **{decision.adapted_verdict}**.",
+        f"- **Safer prior**: paired k = 0 difference {_interval(decision.prior_interval, 100)} points (t; sign-flip "
+        f"{_bounds(decision.prior_flip, 100)}): **{decision.prior_verdict}**.",
+        f"- **Adapted as good**: paired k = 5 return difference {_interval(decision.adapted_interval, 1, 2)} (t; "
+        f"sign-flip {_bounds(decision.adapted_flip, 1, 2)}) against the margin -{_num(decision.adapted_margin)}: "
+        f"**{decision.adapted_verdict}**.",
     ]
     reference, variant = decision.variants
     if len(decision.paired_seeds) >= 2:  # reported beside the rules, which judge the adapted policy by its return
