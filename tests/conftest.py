@@ -67,6 +67,14 @@ class DiscretePointGoalEnv(PointGoalMetaEnv):
         return super().step(self.MOVES[int(action)])
 
 
+def family_class(env_id: str) -> Callable[..., gym.Env]:
+    """The class of a registered task family, to build it with any kwarg (``gym.make`` takes ``max_episode_steps``)."""
+    from gymnasium.envs.registration import load_env_creator
+
+    entry_point = gym.spec(env_id).entry_point
+    return load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point  # type: ignore[return-value]
+
+
 def make_point_env() -> gym.Env:
     """Picklable factory: a SubprocVecEnv worker imports this module, hence sb3_pearl and its env ids."""
     return gym.make("PointGoalMeta-v0")

@@ -221,6 +221,46 @@ def test_held_out_tasks_that_are_training_tasks_are_refused_before_training(tmp_
     assert proc.returncode == 2 and "eval_seed must be an integer >= 0" in proc.stderr
 
 
+@pytest.mark.parametrize(
+    "meta_test, message",
+    [
+        ("dict(n_tasks=0)", "meta_test n_tasks must be None (the model's test tasks) or an integer >= 1, got 0"),
+        ("dict(deterministic='False')", "meta_test deterministic must be True or False, got 'False'"),
+        ("dict(n_adapt=-1)", "meta_test n_adapt must be an integer >= 0"),
+        ("dict(n_repeats=0)", "meta_test n_repeats must be an integer >= 1"),
+    ],
+)
+def test_invalid_meta_test_settings_are_refused_before_training(tmp_path: Path, meta_test: str, message: str) -> None:
+    """A meta_test value out of range is a one-line error (exit 2) before anything is trained, not replaced by a default
+    (n_tasks=0 gave the model's test tasks, deterministic='False' gave True) nor found after training (n_adapt=-1)."""
+    proc = train(tmp_path, "pearl", params=[*TINY_PARAMS, f"meta_test:{meta_test}"], check=False)
+    assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert not list(tmp_path.rglob("*.zip"))
+
+
+def test_params_meta_test_overrides_only_its_keys(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """-params "meta_test:dict(n_tasks=3)" overrides that key of the YAML entry's meta_test and keeps the others; a
+    value the YAML gives out of range is refused whatever -params adds."""
+    from sb3_pearl.zoo import MetaExperimentManager
+    from sb3_pearl.zoo.usage import UsageError
+
+    def stop(manager: MetaExperimentManager) -> None:  # the settings as they reach the run, before any folder or env
+        raise UsageError(f"meta_test settings {sorted(manager.meta_test_kwargs.items())}")
+
+    monkeypatch.setattr(MetaExperimentManager, "create_log_folder", stop)
+    with open(ROOT / "zoo_hyperparams" / "pearl.yml") as file:
+        entry = yaml.safe_load(file)[ENV_ID]
+    conf = tmp_path / "conf.yml"
+    conf.write_text(yaml.safe_dump({ENV_ID: {**entry, "meta_test": {"n_adapt": 1, "n_repeats": 4, "deterministic": False}}}))
+    argv = ["--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf), "-n", "10"]
+    proc = run_in_process(train_main, *argv, "-params", "meta_test:dict(n_tasks=3)", check=False)
+    expected = {"deterministic": False, "eval_seed": 10000, "n_adapt": 1, "n_repeats": 4, "n_tasks": 3}
+    assert f"meta_test settings {sorted(expected.items())}" in proc.stderr, proc.stderr[-2000:]
+    conf.write_text(yaml.safe_dump({ENV_ID: {**entry, "meta_test": {"n_adapt": -1}}}))
+    proc = run_in_process(train_main, *argv, "-params", "meta_test:dict(n_tasks=3)", check=False)
+    assert proc.returncode == 2 and "meta_test n_adapt must be an integer >= 0" in proc.stderr, proc.stderr[-2000:]
+
+
 def test_enjoy_replays_a_committed_harness_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """--run: a results/ folder replays without training, on the run's own test tasks and draws (its result.json rows)."""
     folder = ROOT / "results" / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
@@ -254,6 +294,23 @@ def test_enjoy_missing_folder_and_other_env(trained: Path, tmp_path: Path) -> No
     (other / f"{ENV_ID}.zip").rename(other / "PointGoalMeta-v0.zip")
     proc = enjoy("--algo", "pearlplus", "--env", "PointGoalMeta-v0", "-f", str(tmp_path / "logs"), "--no-render", check=False)
     assert proc.returncode != 0 and f"was trained on {ENV_ID}, not on PointGoalMeta-v0" in proc.stderr
+
+
+@pytest.mark.parametrize("recorded", [True, False])
+def test_enjoy_refuses_a_model_of_another_family_without_args_yml(tmp_path: Path, recorded: bool) -> None:
+    """No args.yml beside the model: its task family (recorded in the zip; for an older zip, its training tasks checked
+    with the env's task_error) is checked against --env, one line naming both, before any rollout."""
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", n_train_tasks=2, n_test_tasks=1, seed=0)  # spaces as SafePointGoal
+    if not recorded:
+        model.task_family = None  # a zip saved before the family was recorded
+    folder = tmp_path / "pearlplus" / f"{ENV_ID}_1"
+    model.save(folder / f"{ENV_ID}.zip")
+    proc = enjoy("--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path), "--no-render", "--n-tasks", "1", check=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    line = proc.stderr.strip().splitlines()[-1]
+    assert f"{ENV_ID}.zip was not trained on {ENV_ID}" in line
+    assert ("trained on PointGoalMetaEnv tasks, the env is a SafePointGoalMetaEnv" if recorded else "train_tasks[0]") in line
+    assert "Task 0" not in proc.stdout  # nothing rolled out
 
 
 def test_every_yaml_entry_is_valid() -> None:

@@ -121,6 +121,32 @@ def test_bad_kwargs_raise() -> None:
         env.step(5)
 
 
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"density_range": (30.0, math.inf)}, r"density_range must be two finite numbers"),
+        ({"speed_range": (10.0, math.inf)}, r"speed_range must be two finite numbers"),
+        ({"ego_speed_range": (15.0, math.nan)}, r"ego_speed_range must be two finite numbers"),
+        ({"horizon": 2.5}, r"horizon must be an integer >= 1"),
+        ({"policy_frequency": 2.0}, r"policy_frequency must be an integer >= 1"),
+        ({"w_speed": math.nan}, r"w_speed must be a finite number >= 0"),
+        ({"collision_penalty": math.inf}, r"collision_penalty must be a finite number >= 0"),
+        ({"spawn_jitter": 1.5}, r"spawn_jitter must be a finite number in \[0, 1\)"),
+        ({"speed_jitter": 1.0}, r"speed_jitter must be a finite number in \[0, 1\)"),
+        ({"desired_speed_ratio": math.nan}, r"desired_speed_ratio must be a finite number > 1"),
+        ({"jam_gap": -5.0}, r"jam_gap must be a finite number >= 0"),
+        ({"hidas_dv": math.nan}, r"hidas_dv must be a finite number > 0"),
+        ({"hidas_g_min": math.nan}, r"hidas_g_min must be a finite number >= 0"),
+        ({"hidas_c": -1.0}, r"hidas_c must be a finite number >= 0"),
+    ],
+)
+def test_kwargs_that_hide_violations_are_refused(kwargs: dict[str, object], match: str) -> None:
+    """Every kwarg is checked (finite, in range), the error naming it: a nan weight or an infinite range built an env
+    whose rewards or traffic were nonsense."""
+    with pytest.raises(ValueError, match=match):
+        HighwayMergeMetaEnv(**kwargs)  # type: ignore[arg-type]
+
+
 # -- Hidas' rule and IDM -------------------------------------------------------------------------------
 def test_hidas_hand_computed() -> None:
     # Dt = dv / b_f = 2.7 / 1.5 = 1.8 s, b_f Dt^2 / 2 = 1.5 * 3.24 / 2 = 2.43 m, so

@@ -13,6 +13,7 @@ import pytest
 from stable_baselines3.common.env_checker import check_env
 
 import sb3_pearl  # noqa: F401  (registers the envs)
+from tests.conftest import family_class
 
 MUJOCO_IDS = ["HalfCheetahVelMeta-v0", "Walker2dVelMeta-v0", "AntVelMeta-v0", "AntDirMeta-v0", "AntGoalMeta-v0"]
 HEALTH_IDS = ["Walker2dVelMeta-v0", "AntVelMeta-v0", "AntDirMeta-v0", "AntGoalMeta-v0"]
@@ -245,6 +246,23 @@ def test_ant_dir_tasks_are_balanced_and_held_out() -> None:
 def test_bad_kwargs_raise(env_id: str, kwargs: dict[str, Any], match: str) -> None:
     with pytest.raises(ValueError, match=match):
         gym.make(env_id, **kwargs)
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs, match",
+    [
+        ("HalfCheetahVelMeta-v0", {"ctrl_cost_weight": -1.0}, r"ctrl_cost_weight must be a finite number >= 0"),
+        ("HalfCheetahVelMeta-v0", {"ctrl_cost_weight": math.nan}, r"ctrl_cost_weight must be a finite number >= 0"),
+        ("Walker2dVelMeta-v0", {"max_episode_steps": math.nan}, r"max_episode_steps must be an integer >= 1 .*got nan"),
+        ("AntDirMeta-v0", {"max_episode_steps": 2.5}, r"max_episode_steps must be an integer >= 1 .*got 2.5"),
+        ("AntDirMeta-v0", {"base_directions": ["up"]}, r"base_directions must be a non-empty sequence of finite angles"),
+        ("AntVelMeta-v0", {"unhealthy_penalty": "high"}, r"unhealthy_penalty must be a finite number >= 0"),
+    ],
+)
+def test_kwargs_that_hide_violations_are_refused(env_id: str, kwargs: dict[str, Any], match: str) -> None:
+    """Every kwarg of a MuJoCo family is checked (finite, in range), the error naming it."""
+    with pytest.raises(ValueError, match=match):
+        family_class(env_id)(**kwargs)  # the class itself: gym.make takes max_episode_steps for its TimeLimit
 
 
 def test_ant_goal_rejects_malformed_goal() -> None:

@@ -14,6 +14,7 @@ from stable_baselines3.common.env_checker import check_env
 
 import sb3_pearl  # noqa: F401  (registers the envs)
 from sb3_pearl.envs.point_maze_goal import free_cells
+from tests.conftest import family_class
 
 POINT_IDS = ["SparsePointGoalMeta-v0", "PointMazeGoalMeta-v0"]
 
@@ -127,6 +128,56 @@ def test_point_maze_tasks_in_goal_cells_and_validated() -> None:
     assert len(umaze.goal_cells) == 6
     clone = pickle.loads(pickle.dumps(base))
     assert clone.sample_tasks(3, seed=1) == base.sample_tasks(3, seed=1)
+
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs, match",
+    [
+        ("PointGoalMeta-v0", {"goal_low": NAN}, r"goal_low and goal_high must be finite"),
+        ("PointGoalMeta-v0", {"goal_high": INF}, r"goal_low and goal_high must be finite"),
+        ("PointGoalMeta-v0", {"max_step": 0.0}, r"max_step must be a finite number > 0 .*got 0.0"),
+        ("PointGoalMeta-v0", {"max_step": NAN}, r"max_step must be a finite number > 0"),
+        ("SafePointGoalMeta-v0", {"hazard_radius": -0.3}, r"hazard_radius must be a finite number > 0 .*got -0.3"),
+        ("SafePointGoalMeta-v0", {"hazard_radius": NAN}, r"hazard_radius must be a finite number > 0 .*got nan"),
+        ("SafePointGoalMeta-v0", {"goal_radius": NAN}, r"goal_radius must be a finite number in \(0, 2\) .*got nan"),
+        ("SafePointGoalMeta-v0", {"goal_radius": -1.0}, r"goal_radius must be a finite number in \(0, 2\)"),
+        ("SafePointGoalMeta-v0", {"goal_angle_low": NAN}, r"goal_angle_low and goal_angle_high must be finite"),
+        ("SafePointGoalMeta-v0", {"hazard_offset": INF}, r"hazard_offset must be a finite number"),
+        ("SafePointGoalMeta-v0", {"hazard_distance": NAN}, r"hazard_distance must be a finite number > 0"),
+        ("SafePointGoalMeta-v0", {"crash_penalty": -1.0}, r"crash_penalty must be a finite number >= 0"),
+        ("SafePointGoalMeta-v0", {"crash_penalty": NAN}, r"crash_penalty must be a finite number >= 0"),
+        ("SafePointGoalMeta-v0", {"max_episode_steps": 0}, r"max_episode_steps must be an integer >= 1"),
+        ("SparsePointGoalMeta-v0", {"reward_radius": INF}, r"reward_radius must be a finite number > 0"),
+        ("SparsePointGoalMeta-v0", {"max_step": NAN}, r"max_step must be a finite number > 0"),
+        ("PointMazeGoalMeta-v0", {"start_cell": (1.5, 1)}, r"start_cell must be \[row, column\], two integers"),
+        ("PointMazeGoalMeta-v0", {"goal_cells": [(6.5, 2)]}, r"goal_cells\[0\] must be \[row, column\], two integers"),
+        ("PointMazeGoalMeta-v0", {"goal_cells": [(6, True)]}, r"goal_cells\[0\] must be \[row, column\], two integers"),
+    ],
+)
+def test_point_families_refuse_kwargs_that_hide_violations(env_id: str, kwargs: dict[str, object], match: str) -> None:
+    """A non-finite or out-of-range kwarg is refused naming it: a negative or nan hazard radius would build an env on
+    which nothing is ever a violation."""
+    with pytest.raises(ValueError, match=match):
+        family_class(env_id)(**kwargs)  # the class itself: gym.make takes max_episode_steps for its TimeLimit
+
+
+def test_point_maze_converts_integer_valued_float_cells() -> None:
+    """Cells given as integer-valued floats (YAML, JSON) are taken as the integers they are: in the kwargs and in a
+    task's goal_cell, which reaches gymnasium-robotics as integers (a float cell crashed its reset)."""
+    env = gym.make("PointMazeGoalMeta-v0", start_cell=(1.0, 1.0), goal_cells=[[6.0, 2.0]])
+    base = env.unwrapped
+    assert base.start_cell == (1, 1) and base.goal_cells == [(6, 2)]
+    task = base.sample_tasks(1, seed=0)[0]
+    assert task["goal_cell"] == [6, 2] and all(type(c) is int for c in task["goal_cell"])
+    base.set_task({"goal_cell": [6.0, 2.0], "goal": task["goal"]})
+    assert base.get_task()["goal_cell"] == [6, 2] and all(type(c) is int for c in base.get_task()["goal_cell"])
+    env.reset(seed=0)
+    env.step(np.zeros(2, dtype=np.float32))
+    with pytest.raises(ValueError, match="goal_cell must be .*an integer"):
+        base.set_task({"goal_cell": [6.5, 2.0], "goal": task["goal"]})
 
 
 def _bfs_path(free: set[tuple[int, int]], start: tuple[int, int], goal: tuple[int, int]) -> list[tuple[int, int]]:

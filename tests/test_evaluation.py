@@ -320,3 +320,21 @@ def test_figures_read_a_harness_run_like_a_zoo_run(tmp_path: Any) -> None:
     assert [entry["k"] for entry in result.summary] == list(range(6))
     plot_adaptation({label: result}, tmp_path / "a.png")
     assert (tmp_path / "a.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("env_id", ["Walker2dVelMeta-v0", "AntVelMeta-v0", "HalfCheetahVelMeta-v0"])
+def test_velocity_families_record_each_trajectorys_velocity_error(env_id: str) -> None:
+    """The family's own measure of the job: per trajectory the mean of |v - v*| over its steps, in the rows, the summary
+    and both tables, beside return and violations."""
+    from sb3_pearl.evaluation.scripted import ScriptedPolicy
+
+    env = gym.make(env_id)
+    still = ScriptedPolicy(lambda obs: np.zeros(env.action_space.shape), "zero torque")
+    tasks = env.unwrapped.sample_tasks(2, seed=3)
+    result = meta_test(still, env, tasks, n_adapt=1, n_repeats=1, seed=0, max_steps=30, trace_keys=("reward_forward",))
+    for row, trace in zip(result.rows, result.traces, strict=True):
+        assert row["velocity_error"] == pytest.approx(-np.mean(trace["reward_forward"]))
+    k0 = result.summary[0]
+    assert k0["velocity_error_mean"] == pytest.approx(np.mean([r["velocity_error"] for r in result.rows if r["k"] == 0]))
+    assert "velocity error, m/s" in result.format_summary()
+    assert "velocity error, m/s" in format_prior_posterior_table(result.summary)

@@ -341,6 +341,79 @@ def test_load_refuses_files_that_do_not_fit(tmp_path: Path, tiny_kwargs: dict[st
     assert PEARLPlus.load(tmp_path / "plus").prior_coef == 0.1
 
 
+def _saved_model(algo: str, folder: Path, tiny_kwargs: dict[str, Any]) -> tuple[Any, Path]:
+    """An untrained tiny model of ``algo`` saved to ``folder/model.zip``: its class and the zip."""
+    from sb3_pearl import Oracle
+
+    if algo in ("pearl", "pearlplus"):
+        model: Any = tiny_pearl(tiny_kwargs, PEARL if algo == "pearl" else PEARLPlus, seed=0)
+    elif algo == "oracle":
+        model = Oracle("MlpPolicy", ENV_ID, n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
+    else:
+        model = tiny_finetune() if algo == "finetune" else tiny_maml()
+    model.save(folder / "model.zip")
+    return type(model), folder / "model.zip"
+
+
+@pytest.mark.parametrize(
+    "algo, override, match",
+    [
+        ("pearl", {"prior_coef": float("nan")}, r"prior_coef must be 0 for PEARL .*got nan"),
+        ("pearl", {"meta_batch": 0}, r"meta_batch must be an integer >= 1 .*got 0"),
+        ("pearlplus", {"prior_coef": float("nan")}, r"prior_coef must be a finite number >= 0 .*got nan"),
+        ("pearlplus", {"gamma": 1.5}, r"gamma must be a finite number in \(0, 1\] .*got 1.5"),
+        ("pearlplus", {"kl_weight": -1.0}, r"kl_weight must be a finite number >= 0 .*got -1.0"),
+        ("pearlplus", {"prior_target": "nope"}, r"unknown prior_target 'nope'"),
+        ("finetune", {"gamma": 1.5}, r"gamma must be a finite number in \(0, 1\]"),
+        ("finetune", {"adapt_gradient_steps": -1}, r"adapt_gradient_steps must be an integer >= 0 .*got -1"),
+        ("oracle", {"tau": 2.0}, r"tau must be a finite number in \[0, 1\] .*got 2.0"),
+        ("maml", {"inner_lr": float("nan")}, r"inner_lr must be a finite number >= 0 .*got nan"),
+        ("maml", {"gae_lambda": 1.5}, r"gae_lambda must be a finite number in \[0, 1\]"),
+    ],
+)
+def test_load_runs_the_constructors_checks(
+    algo: str, override: dict[str, Any], match: str, tmp_path: Path, tiny_kwargs: dict[str, Any]
+) -> None:
+    """A hyperparameter replaced at load (custom_objects, or a load() keyword) is checked as the constructor checks it,
+    with the constructor's message: the argument, its range and the value."""
+    cls, path = _saved_model(algo, tmp_path, tiny_kwargs)
+    with pytest.raises(ValueError, match=rf"model.zip: {match}"):
+        cls.load(path, custom_objects=override)
+    with pytest.raises(ValueError, match=match):
+        cls.load(path, **override)
+    with open(path, "rb") as file, pytest.raises(ValueError, match=match):  # a stream is checked too
+        cls.load(file, custom_objects=override)
+    cls.load(path)  # the saved values pass
+
+
+def test_set_env_refuses_vec_normalize_and_another_task_family(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    """set_env checks the env as the constructor does (no VecNormalize) and refuses an env of another task family in
+    one line, whether the spaces match (PointGoal / SafePointGoal, Walker2d / HalfCheetah) or not; load(env=) too."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    model = tiny_pearl(tiny_kwargs, seed=0)
+    env = model.env
+    with pytest.raises(ValueError, match=r"VecNormalize is not supported: the adaptation API passes raw observations"):
+        model.set_env(VecNormalize(make_vec_env(ENV_ID)))
+    with pytest.raises(ValueError, match=r"set_env: .*trained on SafePointGoalMetaEnv tasks.* a PointGoalMetaEnv"):
+        model.set_env(make_vec_env("PointGoalMeta-v0"))
+    model.task_family = None  # a model saved before the family was recorded: its training tasks tell
+    with pytest.raises(ValueError, match=r"set_env: .*train_tasks\[0\] = \{'goal'.*is not a task of the env"):
+        model.set_env(make_vec_env("PointGoalMeta-v0"))
+    assert model.env is env  # a refused env is not set
+    model.set_env(make_vec_env(ENV_ID))
+    assert model.task_family == "SafePointGoalMetaEnv"
+
+    walker = tiny_finetune(env="Walker2dVelMeta-v0", buffer_size=1000)
+    cheetah = make_vec_env("HalfCheetahVelMeta-v0")  # the same spaces, the same task keys: only the family tells
+    with pytest.raises(ValueError, match=r"set_env: .*Walker2dVelMetaEnv tasks.* a HalfCheetahVelMetaEnv"):
+        walker.set_env(cheetah)
+    walker.save(tmp_path / "walker.zip")
+    with pytest.raises(ValueError, match=r"Walker2dVelMetaEnv tasks.* a HalfCheetahVelMetaEnv"):
+        FineTune.load(tmp_path / "walker.zip", env=cheetah)
+    assert FineTune.load(tmp_path / "walker.zip", env=make_vec_env("Walker2dVelMeta-v0")).task_family == "Walker2dVelMetaEnv"
+
+
 def test_replay_buffer_of_other_tasks_is_refused(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
     model = tiny_pearl(tiny_kwargs, seed=0)
     model.learn(80)

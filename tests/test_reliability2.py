@@ -156,7 +156,8 @@ def test_a_signal_cuts_the_run_saves_what_the_resume_needs_and_the_resume_is_exa
         cut = _train_signal_env(tmp_path, logs, check=False)
         assert cut.returncode == 128 + signum, cut.stdout[-2000:] + cut.stderr[-2000:]
         assert f"Received {name}: stopping training where it resumes exactly" in cut.stdout
-        assert f"Stopped by {name} at 200 of 420 timesteps: the run is cut" in cut.stdout
+        assert f"Stopped by {name} at 200 of 420 timesteps, " in cut.stdout  # ... and what was trained:
+        assert "gradient steps trained: the run is cut" in cut.stdout
         record = json.loads((run / "interrupted.json").read_text())
         assert record["signal"] == name and record["during"] == "training" and record["exact_resume"]
         assert record["num_timesteps"] == 200 and record["replay_buffer"] == str(run / "replay_buffer.pkl")

@@ -798,3 +798,87 @@ def test_remeasure_repeats_the_runs_own_meta_test_and_adds_draws(results: Path, 
     assert remeasure_experiments(tmp_path, ["safe-point"], larger, seeds=[0], force=True, echo=lambda _: None)
     bad = run_in_process(main, "remeasure", "--results-dir", str(tmp_path / "nowhere"), check=False)
     assert bad.returncode == 2 and "does not exist" in bad.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# The report's inputs and outputs: atomic write, re-measured records that may not be the run's
+# ----------------------------------------------------------------------------------------------
+COMMITTED_RUN = ROOT / "results" / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
+REMEASURED_RUN = ROOT / "results" / "merge-table1" / "highway-merge" / "pearlplus-fixed-entropy"
+
+
+def _copy_run(source: Path, results_dir: Path, names: tuple[str, ...] = ("result.json",)) -> Path:
+    """A committed run's files (``names``) copied into the same layout under ``results_dir``: its run folder."""
+    import shutil
+
+    folder = results_dir.joinpath(*source.parts[-4:])
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        shutil.copy(source / name, folder / name)
+    return folder
+
+
+def test_report_writes_its_file_atomically(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A write of docs/results.md that fails half-way (here an unencodable character) leaves the previous file whole,
+    and no temporary file beside it."""
+    from sb3_pearl.reproduce import report
+
+    _copy_run(COMMITTED_RUN, tmp_path / "results")
+    out = tmp_path / "docs" / "results.md"
+    out.parent.mkdir()
+    out.write_text("# Results\n\nhand-written text\n")
+    monkeypatch.setattr(report, "build_report", lambda *args: "a table\n\ud800 cut here\n")
+    with pytest.raises(UnicodeEncodeError):
+        report.write_report(tmp_path / "results", out)
+    assert out.read_text() == "# Results\n\nhand-written text\n"
+    assert not [path.name for path in out.parent.iterdir() if ".tmp" in path.name]
+    monkeypatch.setattr(report, "build_report", lambda *args: "a table")
+    report.write_report(tmp_path / "results", out)
+    assert "hand-written text" in out.read_text() and f"{BEGIN}\na table\n{END}" in out.read_text()
+
+
+def test_a_remeasured_record_of_another_run_is_skipped_with_a_warning(tmp_path: Path) -> None:
+    """read_remeasured: the run's own record is read; a record copied from another seed's folder (or one whose eval seed
+    is not the run's), an empty or an unparsable one is skipped with a warning naming the file, never read as the run's."""
+    import json
+    import shutil
+
+    from sb3_pearl.reproduce.remeasure import read_remeasured
+
+    seed0 = _copy_run(REMEASURED_RUN / "seed0", tmp_path, ("result.json", "meta_test_large.json"))
+    seed1 = _copy_run(REMEASURED_RUN / "seed1", tmp_path, ("result.json",))
+    record = read_remeasured(seed0)
+    assert record is not None and record["seed"] == 0 and record["summary"][0]["k"] == 0
+    assert read_remeasured(seed1) is None  # none there: no warning
+    shutil.copy(seed0 / "meta_test_large.json", seed1 / "meta_test_large.json")  # seed 0's record in seed 1's folder
+    with pytest.warns(
+        UserWarning, match=r"seed1/meta_test_large.json .*another run: seed 'seed0' \(its folder says 'seed1'\)"
+    ):
+        assert read_remeasured(seed1) is None
+    result = json.loads((seed0 / "result.json").read_text())
+    with pytest.warns(UserWarning, match=r"was measured with eval seed \d+, the run's result.json says 7"):
+        assert read_remeasured(seed0, {**result, "eval_seed": 7}) is None
+    for text, problem in (("", "is empty"), ("{", "is not valid JSON")):
+        (seed1 / "meta_test_large.json").write_text(text)
+        with pytest.warns(UserWarning, match=rf"seed1/meta_test_large.json {problem}"):
+            assert read_remeasured(seed1) is None
+
+
+def test_remeasure_measures_an_empty_or_unparsable_record_again(tmp_path: Path) -> None:
+    """`reproduce remeasure` does not take a zero-byte (or cut) record for a measured run: it measures it again and
+    says so."""
+    import json
+
+    from sb3_pearl.experiments.table1_rules import RemeasureConfig
+    from sb3_pearl.reproduce.remeasure import remeasure_run
+
+    folder = _copy_run(COMMITTED_RUN, tmp_path, ("result.json", "model.zip"))
+    tiny = RemeasureConfig(n_tasks=1, prior_repeats=1, adapted_repeats=1, n_adapt=1, file_name="tiny.json")
+    for text, problem in (("", "is empty"), ('{"summary": [', "is not valid JSON")):
+        (folder / "tiny.json").write_text(text)
+        said: list[str] = []
+        assert remeasure_run(folder, tiny, echo=said.append) == folder / "tiny.json"
+        assert json.loads((folder / "tiny.json").read_text())["summary"][0]["k"] == 0
+        assert any(problem in line and "measuring it again" in line for line in said), said
+    said = []
+    assert remeasure_run(folder, tiny, echo=said.append) is None and not said  # a complete record: left as it is

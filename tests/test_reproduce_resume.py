@@ -214,3 +214,20 @@ def test_a_learning_curve_changes_nothing_else_and_resumes(
 
 def _without_wall_time(rows: list[dict[str, float]]) -> list[dict[str, float | None]]:
     return [{k: None if math.isnan(v) else v for k, v in row.items() if k != "wall_s"} for row in rows]
+
+
+@pytest.mark.parametrize("snapshot_text", ["", "\x00\x00\x00", "a,b\n1,2,3\n"])
+def test_an_empty_progress_snapshot_keeps_the_runs_progress_csv(tmp_path: Path, snapshot_text: str) -> None:
+    """A progress snapshot that is empty or cannot be parsed is not restored over the run's progress.csv (which the
+    resume would empty): the log is kept, with a warning naming the snapshot, and continues."""
+    log = "time/total_timesteps,train/n_updates\n120,5\n240,10\n"
+    (tmp_path / "progress.csv").write_text(log)
+    snapshot = tmp_path / "progress_240.csv"
+    snapshot.write_text(snapshot_text)
+    with pytest.warns(UserWarning, match=r"progress_240.csv .*not restored: .*progress.csv kept"):
+        logger = checkpoint.csv_logger_continuing(tmp_path, snapshot)
+    logger.record("time/total_timesteps", 360)
+    logger.record("train/n_updates", 15)
+    logger.dump(360)
+    logger.close()
+    assert (tmp_path / "progress.csv").read_text() == log + "360,15\n"

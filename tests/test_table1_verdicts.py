@@ -56,7 +56,8 @@ def write_run(root: Path, owner: str, family: str, variant: str, seed: int, own:
     result |= {"meta_test": {"summary": own}, "shift": None, "competence": {}}
     (folder / "result.json").write_text(json.dumps(result))
     if large is not None:
-        (folder / MERGE_REMEASURE.file_name).write_text(json.dumps({"summary": large}))
+        record = {"experiment": owner, "family": family, "variant": variant, "seed": seed, "summary": large}
+        (folder / MERGE_REMEASURE.file_name).write_text(json.dumps(record))
 
 
 def test_premise_gate_by_hand() -> None:

@@ -13,15 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from sb3_pearl.envs.checks import check_number, is_real
+
 
 def is_integer(value: Any) -> bool:
     """Whether ``value`` is an integer (Python or numpy), not a bool."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
-
-
-def is_real(value: Any) -> bool:
-    """Whether ``value`` is a real number (Python or numpy int / float), not a bool."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 def _hint(hint: str) -> str:
@@ -61,21 +58,7 @@ def check_real(
     :param high_open: exclude ``high``
     :param hint: what the argument does, for the message
     """
-    ok = is_real(value) and math.isfinite(float(value))
-    if ok and low is not None:
-        ok = value > low if low_open else value >= low
-    if ok and high is not None:
-        ok = value < high if high_open else value <= high
-    if not ok:
-        if low is not None and high is not None:
-            interval = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
-        elif low is not None:
-            interval = f"{'>' if low_open else '>='} {low:g}"
-        elif high is not None:
-            interval = f"{'<' if high_open else '<='} {high:g}"
-        else:
-            interval = "finite"
-        raise ValueError(f"{name} must be a finite number {interval}{_hint(hint)}, got {value!r}")
+    check_number(name, value, low, high, low_open=low_open, high_open=high_open, hint=hint)
 
 
 def check_gamma(gamma: Any) -> None:

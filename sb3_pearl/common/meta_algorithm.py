@@ -7,8 +7,10 @@ their own way; :class:`MetaAlgorithm` holds what they have in common, written on
   ``env.sample_tasks(n_train_tasks + n_test_tasks, seed)`` call with the model seed (so a seed gives every algorithm the
   same tasks), or explicit ``train_tasks`` / ``test_tasks`` (:func:`~sb3_pearl.common.tasks.resolve_train_test_tasks`);
 - the checks: the task arguments (:func:`check_task_arguments`, before anything is built), the env as a task family the
-  algorithm can use (:func:`~sb3_pearl.common.tasks.check_meta_env`), a training task to learn on, and the transitions
-  handed to the adaptation API's ``observe()`` (:func:`check_observed_transition`);
+  algorithm can use (:func:`~sb3_pearl.common.tasks.check_meta_env`), at construction, ``load(env=...)`` and
+  ``set_env`` alike, an env of the task family the model was trained on (:attr:`MetaAlgorithm.task_family`, saved with
+  the model), a training task to learn on, and the transitions handed to the adaptation API's ``observe()``
+  (:func:`check_observed_transition`);
 - :attr:`MetaAlgorithm.stochastic_adaptation`: how the meta-test protocol rolls the model out;
 - :meth:`MetaAlgorithm.training_plan`: what ``learn(total_timesteps)`` will still collect and train.
 
@@ -24,11 +26,18 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.type_aliases import MaybeCallback
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.vec_env import unwrap_vec_normalize
 
 from sb3_pearl.common.adaptation import check_finite_observation, check_finite_transition
 from sb3_pearl.common.checks import check_task_counts
-from sb3_pearl.common.tasks import check_meta_env, resolve_train_test_tasks
+from sb3_pearl.common.tasks import (
+    check_meta_env,
+    env_task_family,
+    resolve_train_test_tasks,
+    task_family_problem,
+    vec_env_task_error,
+)
 from sb3_pearl.common.threads import apply_default_num_threads
 from sb3_pearl.envs.task_protocol import Task
 
@@ -96,7 +105,8 @@ class MetaAlgorithm(_AlgorithmBase):
     The frame of a meta-RL algorithm (module docstring): its task sets, checks and training plan.
 
     A mixin: put it before the SB3 base class (and after the adaptation mixins). Its attributes
-    (:attr:`n_train_tasks`, :attr:`n_test_tasks`, :attr:`train_tasks`, :attr:`test_tasks`) are saved with the model.
+    (:attr:`n_train_tasks`, :attr:`n_test_tasks`, :attr:`train_tasks`, :attr:`test_tasks`, :attr:`task_family`) are
+    saved with the model.
     """
 
     # Read by the meta-test protocol (sb3_pearl.evaluation.meta_test): True makes it roll the model out with its
@@ -110,6 +120,9 @@ class MetaAlgorithm(_AlgorithmBase):
     n_test_tasks: int
     train_tasks: list[Task]
     test_tasks: list[Task]
+    # The task family the model was built on (MetaTaskEnv.task_family; None: its env does not tell, or a model saved
+    # before it was recorded): load(env=...) and set_env refuse an env of another family.
+    task_family: str | None
 
     def _init_meta_algorithm(
         self,
@@ -131,6 +144,7 @@ class MetaAlgorithm(_AlgorithmBase):
         self.n_test_tasks = n_test_tasks
         self.train_tasks = list(train_tasks) if train_tasks is not None else []
         self.test_tasks = list(test_tasks) if test_tasks is not None else []
+        self.task_family = None
         if self.env is not None:
             check_meta_env(
                 type(self).__name__,
@@ -145,12 +159,51 @@ class MetaAlgorithm(_AlgorithmBase):
         """
         The task sets, in ``_setup_model``: explicit ones checked against the env, else drawn with the model seed.
 
-        Without an env (``load`` without one) the saved task sets stay as they are.
+        Without an env (``load`` without one) the saved task sets stay as they are. With one, a loaded model's
+        family must be the env's (:attr:`task_family`, recorded here).
         """
         if self.env is not None:
+            family = env_task_family(self.env)
+            problem = task_family_problem(self.task_family, [], family, None)  # the tasks: resolve_train_test_tasks
+            if problem is not None:
+                raise ValueError(
+                    f"{type(self).__name__}: the env is not of the task family of the model: {problem}; give it an env of "
+                    "that family"
+                )
+            self.task_family = family if family is not None else self.task_family
             self.train_tasks, self.test_tasks = resolve_train_test_tasks(
                 self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
             )
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """
+        SB3's ``set_env`` (same number of envs, same spaces), after the constructor's checks of the env (a task family,
+        no VecNormalize) and a check that it is of the task family the model was trained on (:attr:`task_family`, and
+        its training tasks through the env's ``task_error``): a refused env raises a one-line ValueError and the model
+        keeps its env.
+
+        :param env: the env (wrapped into a VecEnv as SB3 does)
+        :param force_reset: reset the env before the next ``learn``
+        """
+        vec_env = self._wrap_env(env, self.verbose)
+        name = type(self).__name__
+        check_meta_env(
+            name,
+            vec_env,
+            vec_env.observation_space,
+            vec_env.action_space,
+            unwrap_vec_normalize(vec_env),
+            flat_observations=self.requires_flat_observations,
+        )
+        family = env_task_family(vec_env)
+        problem = task_family_problem(self.task_family, self.train_tasks, family, vec_env_task_error(vec_env))
+        if problem is not None:
+            raise ValueError(
+                f"{name}.set_env: the env is not of the task family the model was trained on: {problem}; give it an env "
+                "of that family"
+            )
+        super().set_env(vec_env, force_reset)
+        self.task_family = family if family is not None else self.task_family
 
     def _check_train_tasks(self) -> None:
         """Raise a clear error when there is no training task to learn on."""

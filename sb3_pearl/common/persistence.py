@@ -10,7 +10,10 @@ wrap SB3's ``save`` / ``load`` / ``save_replay_buffer`` / ``load_replay_buffer``
 - ``load`` first reads the zip's ``data`` entry and checks every entry's CRC: a truncated or corrupt
   zip, a zip of another algorithm (SB3's SAC, or MAML into PEARL) and, through
   :meth:`SaveLoadMixin._check_saved_data`, a zip of a sibling class (PEARL+ into ``PEARL.load``) get
-  an error naming the file and the class to use.
+  an error naming the file and the class to use. The hyperparameters the model will have (the saved
+  ones, with ``custom_objects`` and ``load()``'s keywords in their place) then go through the
+  constructor's own argument checks (:meth:`SaveLoadMixin._check_saved_arguments`): a value the
+  constructor refuses is refused at load too, with the constructor's message.
 - a saved replay buffer carries the training tasks it was collected on; ``load_replay_buffer``
   refuses a buffer of other tasks (another family or another seed with the same dimensions would
   silently train on the wrong data).
@@ -21,6 +24,8 @@ one runs whatever code its author put in it: load only files you trust.
 
 from __future__ import annotations
 
+import copy
+import inspect
 import io
 import json
 import os
@@ -30,11 +35,14 @@ import re
 import warnings
 import zipfile
 import zlib
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, ClassVar, TypeVar, cast
 
+import numpy as np
 import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.save_util import load_from_pkl
+from stable_baselines3.common.save_util import json_to_data, load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_pearl.common.atomic import atomic_write, sb3_file_path
@@ -106,6 +114,43 @@ def read_model_data(path: str | os.PathLike[str]) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ValueError(f"{file}: its 'data' entry is not a dict of class parameters: {fix}")
     return data
+
+
+def loaded_model_data(data: dict[str, Any], custom_objects: dict[str, Any] | None) -> dict[str, Any]:
+    """
+    A zip's data as SB3's ``load`` will set it on the model: serialised objects unpickled, and the entries that
+    ``custom_objects`` names replaced by its values (SB3's rule: a key the zip does not hold is ignored).
+
+    :param data: the zip's ``data`` entry (:func:`read_model_data`)
+    :param custom_objects: the objects given to ``load``
+    :return: the attributes by name
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # SB3's load itself warns about an object it cannot unpickle: once is enough
+        return json_to_data(json.dumps(data), custom_objects=custom_objects)
+
+
+def saved_arguments(constructor: Callable[..., Any], saved: Mapping[str, Any], **derived: Any) -> dict[str, Any]:
+    """
+    The arguments of ``constructor`` that a model's attributes stand for, for the constructor's argument checks at load.
+
+    Every parameter with a default takes, in this order of precedence: ``derived`` (an argument kept under another
+    name, e.g. ``latent_dim`` in ``policy_kwargs``), the attribute of the same name, the default. An empty
+    ``train_tasks`` / ``test_tasks`` list (a model built without an env) stands for None, as the constructor takes it.
+
+    :param constructor: the class's ``__init__``
+    :param saved: the model's attributes by name (a zip's data, or ``vars(model)``)
+    :param derived: arguments read from attributes of other names
+    :return: the arguments by name
+    """
+    parameters = inspect.signature(constructor).parameters
+    arguments = {name: p.default for name, p in parameters.items() if p.default is not inspect.Parameter.empty}
+    arguments.update({name: saved[name] for name in arguments if name in saved})
+    arguments.update(derived)
+    for name in ("train_tasks", "test_tasks"):
+        if name in arguments and not arguments[name]:
+            arguments[name] = None
+    return arguments
 
 
 def saved_policy_name(data: dict[str, Any]) -> str:
@@ -265,9 +310,14 @@ class SaveLoadMixin(_AlgorithmBase):
             everything else load whole: what evaluation needs). The harness resumes strictly (exact resume)
         :param kwargs: attributes to set on the loaded model
         :return: the model
+        :raises ValueError: the file is not a complete zip of this class, or a hyperparameter (saved, in
+            ``custom_objects`` or in ``kwargs``) fails the constructor's checks
         """
         if isinstance(path, (str, os.PathLike)):
-            cls._check_saved_data(read_model_data(path), str(path))
+            data = read_model_data(path)
+            cls._check_saved_data(data, str(path))
+            # Before SB3 builds anything from them: a bad value fails here with the constructor's message.
+            cls._check_loaded_arguments({**loaded_model_data(data, custom_objects), **kwargs}, str(path))
         model = super().load(  # type: ignore[misc]
             path,
             env=env,
@@ -277,6 +327,8 @@ class SaveLoadMixin(_AlgorithmBase):
             force_reset=force_reset and not (restore_env and env is not None),
             **kwargs,
         )
+        if not isinstance(path, (str, os.PathLike)):  # a stream is read once, by SB3: its model is checked instead
+            cls._check_loaded_arguments(vars(model), str(getattr(path, "name", "the model file")))
         env_state = model.__dict__.pop("_env_state", None)
         if restore_env and env is not None:
             resumable = env_state is not None and model._last_obs is not None
@@ -294,6 +346,31 @@ class SaveLoadMixin(_AlgorithmBase):
             restore_training_rng_state(state, None, model.action_space)
             model.__dict__["_rng_to_restore"] = state
         return model
+
+    @classmethod
+    def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
+        """
+        Run the constructor's argument checks on a model's attributes (each class checks its own arguments, reusing
+        the checks its constructor runs; :func:`saved_arguments` maps attributes to arguments). Nothing here.
+
+        :param saved: the attributes by name: a zip's data with ``load``'s replacements, or ``vars(model)``
+        """
+
+    @classmethod
+    def _check_loaded_arguments(cls, saved: Mapping[str, Any], source: str) -> None:
+        """
+        :meth:`_check_saved_arguments` with the file named in the error.
+
+        :param saved: the attributes by name
+        :param source: the model file, for the message
+        """
+        try:
+            cls._check_saved_arguments(saved)
+        except ValueError as error:
+            raise ValueError(
+                f"{source}: {error} ({cls.__name__}.load checks the hyperparameters as the constructor does: the "
+                "value is the zip's, or the one given in custom_objects or as a load() keyword)"
+            ) from None
 
     @classmethod
     def _saved_class_name(cls, data: dict[str, Any]) -> str:
@@ -337,11 +414,16 @@ class ReplayBufferSaveLoadMixin(SaveLoadMixin, _OffPolicyBase):
         """
         assert self.replay_buffer is not None, "The replay buffer is not defined"
         tag_buffer_tasks(self.replay_buffer, self.train_tasks)
-        if isinstance(path, (str, os.PathLike)):
-            with atomic_write(sb3_file_path(path, "pkl")) as file:
-                super().save_replay_buffer(cast(io.BufferedIOBase, file))
-        else:
-            super().save_replay_buffer(path)
+        full_buffer = self.replay_buffer
+        self.replay_buffer = compact_buffer(full_buffer)  # only the filled rows are pickled
+        try:
+            if isinstance(path, (str, os.PathLike)):
+                with atomic_write(sb3_file_path(path, "pkl")) as file:
+                    super().save_replay_buffer(cast(io.BufferedIOBase, file))
+            else:
+                super().save_replay_buffer(path)
+        finally:
+            self.replay_buffer = full_buffer
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """
@@ -358,6 +440,7 @@ class ReplayBufferSaveLoadMixin(SaveLoadMixin, _OffPolicyBase):
                 f"{path} is not a complete replay buffer pickle ({type(error).__name__}: {error}): the file is truncated "
                 "or corrupt; save the replay buffer again, or train without it"
             ) from None
+        expand_buffer(self.replay_buffer)
         try:
             check_buffer_tasks(self.replay_buffer, self.train_tasks, path)
         except ValueError:
@@ -365,14 +448,63 @@ class ReplayBufferSaveLoadMixin(SaveLoadMixin, _OffPolicyBase):
             raise
 
 
+COMPACT_CAPACITY_ATTR = "_sb3_pearl_capacity"  # set on a pickled SB3 ReplayBuffer holding only its filled rows
+_ROW_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+
+def compact_buffer(buffer: Any) -> Any:
+    """
+    A shallow copy of an SB3 ``ReplayBuffer`` that is not full, holding only its filled rows (``[:pos]``) and its
+    capacity in :data:`COMPACT_CAPACITY_ATTR`: SB3 allocates and pickles all ``buffer_size`` rows (a 1M-row Ant buffer
+    is ~1.8 GB however little is filled), so a part-way run's checkpoint would be too large to keep. Anything else
+    (a full buffer, PEARL's per-task buffer, dict observations) is returned as it is.
+
+    :param buffer: the replay buffer
+    :return: what to pickle
+    """
+    if type(buffer) is not ReplayBuffer or buffer.full or buffer.pos >= buffer.buffer_size:
+        return buffer
+    compact = copy.copy(buffer)
+    for name in _ROW_ARRAYS:
+        array = getattr(buffer, name, None)
+        if isinstance(array, np.ndarray) and array.shape[:1] == (buffer.buffer_size,):
+            setattr(compact, name, array[: buffer.pos].copy())
+    setattr(compact, COMPACT_CAPACITY_ATTR, buffer.buffer_size)
+    return compact
+
+
+def expand_buffer(buffer: Any) -> None:
+    """
+    Undo :func:`compact_buffer` in place on a loaded buffer: every row array back to ``buffer_size`` rows, the rows
+    past ``pos`` zero as SB3 allocates them (so sampling, and a resumed run, are those of the buffer that was saved).
+
+    :param buffer: the loaded replay buffer
+    """
+    capacity = getattr(buffer, COMPACT_CAPACITY_ATTR, None)
+    if capacity is None:
+        return
+    for name in _ROW_ARRAYS:
+        array = getattr(buffer, name, None)
+        if isinstance(array, np.ndarray) and array.shape[:1] == (buffer.pos,):
+            full = np.zeros((capacity, *array.shape[1:]), dtype=array.dtype)
+            full[: buffer.pos] = array
+            setattr(buffer, name, full)
+    delattr(buffer, COMPACT_CAPACITY_ATTR)
+
+
 __all__ = [
     "BUFFER_TASKS_ATTR",
+    "COMPACT_CAPACITY_ATTR",
     "ReplayBufferSaveLoadMixin",
     "SaveLoadMixin",
     "check_buffer_tasks",
+    "compact_buffer",
+    "expand_buffer",
+    "loaded_model_data",
     "read_model_data",
     "read_replay_buffer",
     "resolve_model_path",
+    "saved_arguments",
     "saved_policy_name",
     "tag_buffer_tasks",
 ]

@@ -7,6 +7,7 @@ held-out test tasks. The env side (``sample_tasks`` / ``set_task`` / ``get_task`
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from gymnasium import spaces
@@ -61,6 +62,58 @@ def check_task_vec_env(env: Any, algorithm: str) -> None:
             f"{algorithm} needs a task-family env with sample_tasks(n, seed), set_task(task) and get_task(); "
             f"missing {missing}. See sb3_pearl.envs.task_protocol.MetaTaskEnv, e.g. gym.make('SafePointGoalMeta-v0')."
         )
+
+
+def env_task_family(env: Any) -> str | None:
+    """
+    The task family of a VecEnv's first env (:meth:`~sb3_pearl.envs.task_protocol.MetaTaskEnv.task_family`).
+
+    :param env: a VecEnv
+    :return: the family's name, or None for an env that does not tell it (a task family of another package)
+    """
+    if not env.has_attr("task_family"):
+        return None
+    return str(env.env_method("task_family", indices=[0])[0])
+
+
+def vec_env_task_error(env: Any) -> Callable[[Task], str | None] | None:
+    """
+    The ``task_error`` of a VecEnv's first env as a function (None when the env has none).
+
+    :param env: a VecEnv
+    :return: task -> why it is not a task of the env, or None
+    """
+    if not env.has_attr("task_error"):
+        return None
+    return lambda task: env.env_method("task_error", task, indices=[0])[0]
+
+
+def task_family_problem(
+    task_family: str | None,
+    train_tasks: Sequence[Task],
+    env_family: str | None,
+    task_error: Callable[[Task], str | None] | None,
+) -> str | None:
+    """
+    Why an env is not of the task family a model was trained on, or None when nothing says so.
+
+    The family the model recorded is compared with the env's; then each training task must be a task of the env
+    (its ``task_error``), which also covers a model saved before the family was recorded.
+
+    :param task_family: the family the model was trained on (None: not recorded)
+    :param train_tasks: the model's training tasks
+    :param env_family: the env's family (None: the env does not tell it)
+    :param task_error: the env's ``task_error`` (None: the env has none)
+    :return: the problem, for a one-line message, or None
+    """
+    if task_family is not None and env_family is not None and task_family != env_family:
+        return f"the model was trained on {task_family} tasks, the env is a {env_family}"
+    if task_error is not None:
+        for index, task in enumerate(train_tasks):
+            error = task_error(task)
+            if error is not None:
+                return f"its train_tasks[{index}] = {task!r} is not a task of the env ({error})"
+    return None
 
 
 def draw_train_test_tasks(env: Any, n_train: int, n_test: int, seed: int | None) -> tuple[list[Task], list[Task]]:

@@ -36,6 +36,7 @@ import numpy as np
 from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.utils import EzPickle
 
+from sb3_pearl.envs.checks import check_number, is_real
 from sb3_pearl.envs.locomotion import LocomotionTaskEnv, validate_locomotion_kwargs
 from sb3_pearl.envs.task_protocol import Task, refuse_non_finite_action
 
@@ -60,12 +61,11 @@ class AntDirMetaEnv(LocomotionTaskEnv, AntEnv):
         max_episode_steps: int = 200,
         **kwargs: Any,
     ) -> None:
-        self.base_directions = [float(b) for b in base_directions]
-        if not self.base_directions or not all(math.isfinite(b) for b in self.base_directions):
+        directions = list(base_directions) if isinstance(base_directions, (Sequence, np.ndarray)) else []
+        if not directions or not all(is_real(b) and math.isfinite(float(b)) for b in directions):
             raise ValueError(f"base_directions must be a non-empty sequence of finite angles, got {base_directions!r}")
-        if not (0.0 <= direction_spread <= math.pi):
-            raise ValueError(f"direction_spread must be in [0, pi], got {direction_spread}")
-        self.direction_spread = float(direction_spread)
+        self.base_directions = [float(b) for b in directions]
+        self.direction_spread = check_number("direction_spread", direction_spread, 0.0, math.pi, hint="radians")
         validate_locomotion_kwargs(kwargs, unhealthy_penalty, max_episode_steps)
         self.unhealthy_penalty = float(unhealthy_penalty)
         self.max_episode_steps = int(max_episode_steps)

@@ -32,7 +32,8 @@ import numpy as np
 from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.utils import EzPickle
 
-from sb3_pearl.envs.locomotion import LocomotionTaskEnv, check_range, validate_locomotion_kwargs
+from sb3_pearl.envs.checks import check_range
+from sb3_pearl.envs.locomotion import LocomotionTaskEnv, validate_locomotion_kwargs
 from sb3_pearl.envs.task_protocol import Task, refuse_non_finite_action
 
 

@@ -23,13 +23,14 @@ Choices and where they come from:
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.utils import EzPickle
 
-from sb3_pearl.envs.locomotion import LocomotionTaskEnv, check_range, validate_locomotion_kwargs
+from sb3_pearl.envs.checks import check_range
+from sb3_pearl.envs.locomotion import LocomotionTaskEnv, validate_locomotion_kwargs
 from sb3_pearl.envs.task_protocol import Task, refuse_non_finite_action
 
 
@@ -47,6 +48,9 @@ class AntVelMetaEnv(LocomotionTaskEnv, AntEnv):
     :param kwargs: passed to Gymnasium's ``AntEnv`` (``ctrl_cost_weight``, ``contact_cost_weight``,
         ``healthy_reward``, ``healthy_z_range``, ``include_cfrc_ext_in_observation``, ``render_mode``, ...)
     """
+
+    tracks_velocity: ClassVar[bool] = True
+    trajectory_info_keys: ClassVar[tuple[str, ...]] = ("velocity_error",)  # the trajectory's mean |v - v*| (m/s)
 
     def __init__(
         self,

@@ -13,13 +13,14 @@ subclassing) with the forward reward replaced by PEARL's velocity-tracking rewar
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium.envs.mujoco.half_cheetah_v5 import HalfCheetahEnv
 from gymnasium.utils import EzPickle
 
-from sb3_pearl.envs.locomotion import check_range, ignore_mujoco_warning
+from sb3_pearl.envs.checks import check_number, check_range
+from sb3_pearl.envs.locomotion import ignore_mujoco_warning
 from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, refuse_non_finite_action
 
 
@@ -34,6 +35,10 @@ class HalfCheetahVelMetaEnv(MetaTaskEnv, HalfCheetahEnv):
         ``render_mode``, ...)
     """
 
+    trajectory_info_keys: ClassVar[tuple[str, ...]] = ("velocity_error",)  # the trajectory's mean |v - v*| (m/s)
+    _velocity_error_sum: float = 0.0
+    _velocity_error_steps: int = 0
+
     def __init__(
         self,
         velocity_low: float = 0.0,
@@ -42,6 +47,7 @@ class HalfCheetahVelMetaEnv(MetaTaskEnv, HalfCheetahEnv):
         **kwargs: Any,
     ) -> None:
         check_range("velocity", velocity_low, velocity_high)
+        check_number("ctrl_cost_weight", ctrl_cost_weight, 0.0, hint="weight of |a|^2 in the reward")
         self.velocity_low = float(velocity_low)
         self.velocity_high = float(velocity_high)
         self._init_task()  # before the MuJoCo init: nothing may read the task before it exists
@@ -61,6 +67,7 @@ class HalfCheetahVelMetaEnv(MetaTaskEnv, HalfCheetahEnv):
         :return: observation and info (with ``cost = 0.0``)
         """
         self._apply_pending_task()
+        self._velocity_error_sum, self._velocity_error_steps = 0.0, 0
         obs, info = super().reset(seed=seed, options=options)
         info["cost"] = 0.0
         return obs, info
@@ -73,7 +80,11 @@ class HalfCheetahVelMetaEnv(MetaTaskEnv, HalfCheetahEnv):
         :return: observation, reward, terminated (always False), truncated, info
         """
         refuse_non_finite_action(self, action)
-        return super().step(action)
+        obs, reward, terminated, truncated, info = super().step(action)
+        self._velocity_error_sum -= info["reward_forward"]
+        self._velocity_error_steps += 1
+        info["velocity_error"] = self._velocity_error_sum / self._velocity_error_steps  # the trajectory's so far
+        return obs, reward, terminated, truncated, info
 
     def _get_rew(self, x_velocity: float, action: np.ndarray) -> tuple[float, dict[str, float]]:
         # Called once per step by HalfCheetahEnv.step, whose info is built from this dict: putting

@@ -18,14 +18,14 @@ from its task ranges (documented there); ``unhealthy_penalty=0`` gives the bare 
 
 from __future__ import annotations
 
-import math
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
+from sb3_pearl.envs.checks import check_count, check_number
 from sb3_pearl.envs.task_protocol import MetaTaskEnv
 
 
@@ -58,24 +58,6 @@ def ignore_mujoco_warning(prefix: str) -> Iterator[None]:
         mujoco.set_mju_user_warning(previous)
 
 
-def check_range(name: str, low: float, high: float, *, allow_empty: bool = False, min_value: float | None = None) -> None:
-    """
-    Raise a clear ``ValueError`` unless ``[low, high]`` is a valid, finite range.
-
-    :param name: name of the range in the message (e.g. ``"velocity"``: kwargs ``velocity_low/high``)
-    :param low: lower bound
-    :param high: upper bound
-    :param allow_empty: accept ``low == high`` (a single value)
-    :param min_value: smallest allowed ``low``
-    """
-    if not (math.isfinite(low) and math.isfinite(high)):
-        raise ValueError(f"{name} range must be finite, got [{low}, {high}]")
-    if high < low or (high == low and not allow_empty):
-        raise ValueError(f"{name}_low ({low}) must be < {name}_high ({high})")
-    if min_value is not None and low < min_value:
-        raise ValueError(f"{name}_low ({low}) must be >= {min_value}")
-
-
 class LocomotionTaskEnv(MetaTaskEnv):
     """
     Task mixin for Gymnasium v5 MuJoCo envs with health termination (goes first in the bases).
@@ -88,6 +70,10 @@ class LocomotionTaskEnv(MetaTaskEnv):
     unhealthy_penalty: float
     max_episode_steps: int
     _elapsed_steps: int = 0
+    # Velocity families (Walker2D-vel, Ant3D-vel): ``info["velocity_error"]`` is the mean of ``-reward_forward`` over the
+    # episode's steps so far, so the meta-test records each trajectory's velocity error (trajectory_info_keys).
+    tracks_velocity: ClassVar[bool] = False
+    _velocity_error_sum: float = 0.0
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """
@@ -99,6 +85,7 @@ class LocomotionTaskEnv(MetaTaskEnv):
         """
         self._apply_pending_task()
         self._elapsed_steps = 0
+        self._velocity_error_sum = 0.0
         obs, info = super().reset(seed=seed, options=options)  # type: ignore[misc]
         info["cost"] = 0.0
         return obs, info
@@ -116,6 +103,9 @@ class LocomotionTaskEnv(MetaTaskEnv):
         :return: the reward, penalised on the unhealthy step
         """
         self._elapsed_steps += 1
+        if self.tracks_velocity:
+            self._velocity_error_sum -= float(info["reward_forward"])
+            info["velocity_error"] = self._velocity_error_sum / self._elapsed_steps
         if terminated:
             penalty = self.unhealthy_penalty * max(self.max_episode_steps - self._elapsed_steps, 0)
             info["cost"] = 1.0
@@ -138,7 +128,5 @@ def validate_locomotion_kwargs(base_kwargs: dict[str, Any], unhealthy_penalty: f
             "terminate_when_unhealthy must stay True: these task families end the episode on an unhealthy "
             "pose and report it as info['cost'] = 1 on that step (paper, Section V-A-1)"
         )
-    if not (unhealthy_penalty >= 0 and math.isfinite(unhealthy_penalty)):
-        raise ValueError(f"unhealthy_penalty must be a finite number >= 0, got {unhealthy_penalty}")
-    if max_episode_steps < 1:
-        raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+    check_number("unhealthy_penalty", unhealthy_penalty, 0.0, hint="penalty per step a fall skips")
+    check_count("max_episode_steps", max_episode_steps, 1, hint="the horizon the penalty is sized by")

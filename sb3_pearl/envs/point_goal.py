@@ -13,6 +13,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from sb3_pearl.envs.checks import check_number, check_range
 from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, non_finite_action_error
 
 
@@ -51,8 +52,8 @@ class PointGoalMetaEnv(MetaTaskEnv, gym.Env):
         max_step: float = 0.1,
         render_mode: str | None = None,
     ) -> None:
-        if goal_low >= goal_high:
-            raise ValueError(f"goal_low ({goal_low}) must be < goal_high ({goal_high})")
+        check_range("goal", goal_low, goal_high)
+        check_number("max_step", max_step, 0.0, low_open=True, hint="half-width of the action box")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.goal_low = float(goal_low)

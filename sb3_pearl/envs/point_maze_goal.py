@@ -17,7 +17,9 @@ goal must leave the observation.
   every free cell but the start) and a point drawn once per task uniformly within
   ``goal_noise = 0.25`` m of its centre (gymnasium-robotics' per-reset goal noise, frozen into the
   task so that the task stays fixed across the episodes of a meta-test; the goal does not move
-  within a task). Passing disjoint ``goal_cells`` to the train and the test env gives held-out cells.
+  within a task). Passing disjoint ``goal_cells`` to the train and the test env gives held-out cells. Cells are
+  integers: a task's ``goal_cell`` (and the ``start_cell`` / ``goal_cells`` kwargs) given as integer-valued floats
+  (``[6.0, 2.0]``, as JSON or YAML may hold them) are converted to ints explicitly, any other float is refused.
 - Observation: the flat ``observation`` entry of PointMaze, ``[x, y, vx, vy]`` (a ``Box``);
   ``desired_goal`` is left out (the goal is what meta-RL must infer) and ``achieved_goal`` repeats
   ``x, y``.
@@ -32,6 +34,7 @@ goal must leave the observation.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -40,6 +43,7 @@ import numpy as np
 from gymnasium_robotics.envs.maze.maps import LARGE_MAZE, MEDIUM_MAZE, OPEN, U_MAZE
 from gymnasium_robotics.envs.maze.point_maze import PointMazeEnv
 
+from sb3_pearl.envs.checks import check_number
 from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task, refuse_non_finite_action
 
 MAZES: dict[str, list[list[int | str]]] = {"umaze": U_MAZE, "open": OPEN, "medium": MEDIUM_MAZE, "large": LARGE_MAZE}
@@ -55,13 +59,34 @@ def free_cells(maze_map: Sequence[Sequence[int | str]]) -> list[tuple[int, int]]
     return [(i, j) for i, row in enumerate(maze_map) for j, cell in enumerate(row) if cell != 1]
 
 
+def maze_cell(name: str, cell: Any) -> tuple[int, int]:
+    """
+    A maze cell given as a kwarg, as ``(row, column)`` ints: two integers, or integer-valued floats (``6.0``, as YAML or
+    JSON may give them), which are converted; a bool, a non-integer or non-finite float, or anything else is refused.
+
+    :param name: the kwarg (and index), for the message
+    :param cell: the value
+    :return: the cell
+    """
+    values = list(cell) if isinstance(cell, (Sequence, np.ndarray)) and not isinstance(cell, str) else None
+    ok = values is not None and len(values) == 2
+    for value in values or []:
+        number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+        ok = ok and number and math.isfinite(float(value)) and float(value) == int(value)
+    if not ok:
+        raise ValueError(f"{name} must be [row, column], two integers (e.g. [6, 2]), got {cell!r}")
+    assert values is not None
+    return int(values[0]), int(values[1])
+
+
 class PointMazeGoalMetaEnv(MetaTaskEnv, gym.Env):
     """
     PointMaze ball that must reach a goal cell it does not observe (wraps a ``PointMazeEnv``).
 
     :param maze: ``"umaze"``, ``"open"``, ``"medium"``, ``"large"`` or a map (rows of 0 = free, 1 = wall)
-    :param start_cell: ``(row, column)`` of the start cell
-    :param goal_cells: the cells goals are drawn from; ``None``: every free cell but the start
+    :param start_cell: ``(row, column)`` of the start cell: two integers; integer-valued floats (``1.0``) are converted to
+        ints, other values refused (:func:`maze_cell`)
+    :param goal_cells: the cells goals are drawn from (each as ``start_cell``); ``None``: every free cell but the start
     :param goal_noise: half-width of the uniform offset of the goal from its cell centre (m, < 0.5)
     :param reward_type: PointMaze's ``"dense"`` (``exp(-distance)``) or ``"sparse"`` (``distance <= 0.45``)
     :param render_mode: ``None``, ``"human"``, ``"rgb_array"`` or ``"depth_array"``
@@ -89,20 +114,19 @@ class PointMazeGoalMetaEnv(MetaTaskEnv, gym.Env):
             if not maze_map or any(len(row) != len(maze_map[0]) for row in maze_map):
                 raise ValueError("maze map must be a non-empty list of rows of equal length")
         free = free_cells(maze_map)
-        start = (int(start_cell[0]), int(start_cell[1]))
+        start = maze_cell("start_cell", start_cell)
         if start not in free:
             raise ValueError(f"start_cell {start} is not a free cell of the maze")
         if goal_cells is None:
             cells = [cell for cell in free if cell != start]
         else:
-            cells = [(int(c[0]), int(c[1])) for c in goal_cells]
+            cells = [maze_cell(f"goal_cells[{index}]", cell) for index, cell in enumerate(goal_cells)]
             bad = [cell for cell in cells if cell not in free or cell == start]
             if bad:
                 raise ValueError(f"goal_cells {bad} are walls, outside the maze or the start cell")
         if not cells:
             raise ValueError("goal_cells is empty: the task distribution needs at least one goal cell")
-        if not 0.0 <= goal_noise < 0.5:
-            raise ValueError(f"goal_noise must be in [0, 0.5) (a goal stays inside its cell), got {goal_noise}")
+        check_number("goal_noise", goal_noise, 0.0, 0.5, high_open=True, hint="a goal stays inside its cell")
         if reward_type not in ("dense", "sparse"):
             raise ValueError(f"reward_type must be 'dense' or 'sparse', got {reward_type!r}")
         self.start_cell = start

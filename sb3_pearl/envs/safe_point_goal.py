@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from sb3_pearl.envs.checks import check_count, check_number, check_range
 from sb3_pearl.envs.point_goal import PointGoalMetaEnv
 from sb3_pearl.envs.task_protocol import Task
 
@@ -57,8 +58,13 @@ class SafePointGoalMetaEnv(PointGoalMetaEnv):
         max_episode_steps: int = 30,
         render_mode: str | None = None,
     ) -> None:
-        if goal_angle_low > goal_angle_high:
-            raise ValueError(f"goal_angle_low ({goal_angle_low}) must be <= goal_angle_high ({goal_angle_high})")
+        check_range("goal_angle", goal_angle_low, goal_angle_high, allow_empty=True)
+        check_number("goal_radius", goal_radius, 0.0, 2.0, low_open=True, high_open=True, hint="the robot lives in [-2, 2]^2")
+        check_number("hazard_offset", hazard_offset, hint="radians")
+        check_number("hazard_distance", hazard_distance, 0.0, low_open=True, hint="distance of the hazard centre")
+        check_number("hazard_radius", hazard_radius, 0.0, low_open=True, hint="radius of the hazard disc")
+        check_number("crash_penalty", crash_penalty, 0.0, hint="penalty per step a crash skips")
+        check_count("max_episode_steps", max_episode_steps, 1, hint="the horizon the crash penalty is sized by")
         if hazard_distance <= hazard_radius:
             raise ValueError("the hazard must not contain the start position (0, 0): hazard_distance > hazard_radius")
         self.goal_angle_low = float(goal_angle_low)

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_pearl.envs.locomotion import check_range
+from sb3_pearl.envs.checks import check_number, check_range
 from sb3_pearl.envs.point_goal import PointGoalMetaEnv, finite_move
 from sb3_pearl.envs.task_protocol import Task
 
@@ -51,10 +51,8 @@ class SparsePointGoalMetaEnv(PointGoalMetaEnv):
         render_mode: str | None = None,
     ) -> None:
         check_range("goal_angle", goal_angle_low, goal_angle_high)
-        if not 0.0 < goal_radius < 2.0:
-            raise ValueError(f"goal_radius must be in (0, 2) (the robot lives in [-2, 2]^2), got {goal_radius}")
-        if not reward_radius > 0.0:
-            raise ValueError(f"reward_radius must be > 0, got {reward_radius}")
+        check_number("goal_radius", goal_radius, 0.0, 2.0, low_open=True, high_open=True, hint="the robot lives in [-2, 2]^2")
+        check_number("reward_radius", reward_radius, 0.0, low_open=True, hint="distance to the goal with a reward")
         self.goal_angle_low = float(goal_angle_low)
         self.goal_angle_high = float(goal_angle_high)
         self.goal_radius = float(goal_radius)

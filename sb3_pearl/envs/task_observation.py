@@ -48,7 +48,7 @@ class TaskObservation(gym.ObservationWrapper):
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
-        base = env.unwrapped
+        base: Any = env.unwrapped
         if not all(callable(getattr(base, name, None)) for name in ("sample_tasks", "get_task")):
             raise ValueError(
                 f"TaskObservation needs a task-family env (sample_tasks, set_task, get_task): {type(base).__name__} has "

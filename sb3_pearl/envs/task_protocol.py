@@ -104,12 +104,14 @@ class MetaTaskEnv:
         Set the task used from the next ``reset()`` on (sticky until the next call).
 
         :param task: a task dict as returned by :meth:`sample_tasks`; a value of another type or shape than the
-            family's, a non-finite number or (family-specific) a value out of range raises a ``ValueError``
+            family's, a non-finite number or (family-specific) a value out of range raises a ``ValueError``. Where the
+            family's tasks hold an integer, an integer-valued float (``6.0``, as JSON or YAML may give it) is stored as
+            that integer; any other float is refused
         """
         if not isinstance(task, dict):
             raise TypeError(f"set_task expects a task dict as returned by sample_tasks(), got {type(task).__name__}")
         self._validate_task(task)
-        self._pending_task = _plain(task)
+        self._pending_task = _conformed(self._task, _plain(task))
 
     def task_error(self, task: Any) -> str | None:
         """
@@ -127,6 +129,21 @@ class MetaTaskEnv:
         except (ValueError, TypeError, KeyError, IndexError) as error:
             return str(error)
         return None
+
+    def task_family(self) -> str:
+        """
+        The name of this env's task family, which a model records to refuse an env of another family later (two
+        families may share spaces and task keys, e.g. Walker2d's and HalfCheetah's velocity tasks): the class name of
+        the family, i.e. the first class of this env's MRO defined in :mod:`sb3_pearl.envs`, so that a variant
+        subclassing a family elsewhere (a test's failure-injecting env) stays that family; outside the package, the
+        env's own class name.
+
+        :return: e.g. ``"SafePointGoalMetaEnv"``
+        """
+        for klass in type(self).__mro__:
+            if klass.__module__.startswith("sb3_pearl.envs."):
+                return klass.__name__
+        return type(self).__name__
 
     def get_task(self) -> Task:
         """The task that the next ``reset()`` will use (the pending one if ``set_task`` was called)."""
@@ -211,6 +228,20 @@ def _value_problem(template: Any, value: Any) -> str | None:
             if problem is not None:
                 return f"a dict whose {key!r} is {problem}"
     return None
+
+
+def _conformed(template: Any, value: Any) -> Any:
+    """
+    A validated task value (:func:`_plain`) with the integer-valued floats at the places where ``template`` (a task of
+    the family) holds integers turned into ints: ``[6.0, 2.0]`` for a maze cell is stored as ``[6, 2]``.
+    """
+    if isinstance(template, dict) and isinstance(value, dict):
+        return {key: _conformed(template.get(key), item) for key, item in value.items()}
+    if isinstance(template, (list, tuple)) and isinstance(value, list):
+        return [_conformed(item_template, item) for item_template, item in zip(template, value)]
+    if isinstance(template, (int, np.integer)) and not isinstance(template, (bool, np.bool_)) and _is_number(value):
+        return int(value)
+    return value
 
 
 def _plain(value: Any) -> Any:

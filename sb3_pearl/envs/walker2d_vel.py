@@ -25,13 +25,14 @@ Choices and where they come from:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium.envs.mujoco.walker2d_v5 import Walker2dEnv
 from gymnasium.utils import EzPickle
 
-from sb3_pearl.envs.locomotion import LocomotionTaskEnv, check_range, validate_locomotion_kwargs
+from sb3_pearl.envs.checks import check_range
+from sb3_pearl.envs.locomotion import LocomotionTaskEnv, validate_locomotion_kwargs
 from sb3_pearl.envs.task_protocol import Task, refuse_non_finite_action
 
 
@@ -47,6 +48,9 @@ class Walker2dVelMetaEnv(LocomotionTaskEnv, Walker2dEnv):
     :param kwargs: passed to Gymnasium's ``Walker2dEnv`` (``frame_skip``, ``ctrl_cost_weight``,
         ``healthy_reward``, ``healthy_z_range``, ``reset_noise_scale``, ``render_mode``, ...)
     """
+
+    tracks_velocity: ClassVar[bool] = True
+    trajectory_info_keys: ClassVar[tuple[str, ...]] = ("velocity_error",)  # the trajectory's mean |v - v*| (m/s)
 
     def __init__(
         self,

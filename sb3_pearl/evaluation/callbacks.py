@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import os
+import re
+import time
 from typing import Any
 
 import gymnasium as gym
@@ -204,8 +206,16 @@ class ResumableCheckpointCallback(CheckpointCallback):
     """
     SB3's ``CheckpointCallback`` writing *resumable* checkpoints: the model zip (with every RNG state, see
     :mod:`sb3_pearl.common.persistence`) and, for off-policy models, the replay buffer
-    (``<prefix>_replay_buffer_<steps>_steps.pkl``), saved at the next rollout start once ``save_freq`` calls
-    have passed instead of in the middle of one.
+    (``<prefix>_replay_buffer_<steps>_steps.pkl``), both written atomically, saved once due at the next point where
+    a resume is exact instead of in the middle of a rollout: the next rollout start, or, for a checkpoint due by time
+    with PEARL / PEARL+, the next gradient step (:func:`~sb3_pearl.common.callbacks.gradient_step_event`; the
+    iteration's steps still to train are saved with the model, the file named ``..._steps_u<gradient steps>``), so a
+    periodic checkpoint is never more than a gradient step late even inside a 25-minute iteration.
+
+    A checkpoint is due after ``save_freq`` calls (``on_step``, one per VecEnv step; rl_zoo3's ``--save-freq``) and/or
+    ``every_s`` seconds of wall-clock time since the last one (``train.py --checkpoint-minutes``); ``keep_last``
+    deletes the previous checkpoint's files once the new one is written, so a periodic checkpoint costs the disk of
+    one.
 
     PEARL / PEARL+ and MAML call ``on_rollout_start`` at the start of an iteration, before they draw its tasks,
     so ``train.py --resume`` of such a checkpoint continues bit for bit as the uninterrupted run
@@ -213,50 +223,95 @@ class ResumableCheckpointCallback(CheckpointCallback):
     the zip holds the envs' mid-episode state (:mod:`sb3_pearl.common.env_state`, a DummyVecEnv's) and resumes
     bit for bit too.
 
-    :param save_freq: save after this many calls (``on_step``, one per VecEnv step)
+    :param save_freq: save after this many calls (``on_step``, one per VecEnv step); 0: by time only
     :param save_path: the folder
     :param name_prefix: file name prefix
     :param verbose: 1 prints each checkpoint's path
+    :param every_s: also save after this many seconds since the last checkpoint (None: by calls only)
+    :param keep_last: delete the previous checkpoint's files after each save
     """
 
-    def __init__(self, save_freq: int, save_path: str, name_prefix: str = "rl_model", verbose: int = 0) -> None:
-        super().__init__(save_freq, save_path, name_prefix=name_prefix, save_replay_buffer=True, verbose=verbose)
+    def __init__(
+        self,
+        save_freq: int,
+        save_path: str,
+        name_prefix: str = "rl_model",
+        verbose: int = 0,
+        every_s: float | None = None,
+        keep_last: bool = False,
+    ) -> None:
+        if every_s is not None and not every_s > 0:
+            raise ValueError(f"every_s must be > 0 seconds or None, got {every_s}")
+        super().__init__(max(save_freq, 1), save_path, name_prefix=name_prefix, save_replay_buffer=True, verbose=verbose)
+        self.by_calls = save_freq > 0
+        self.every_s = every_s
+        self.keep_last = keep_last
         self._due = False
+        self._last_save = time.monotonic()
+        self._previous: list[str] = []
+        self.saved: list[list[str]] = []  # the files of every checkpoint written
 
     def _on_step(self) -> bool:
-        if self.n_calls % self.save_freq == 0:
+        if self.by_calls and self.n_calls % self.save_freq == 0:
             self._due = True
         return True
 
+    def _is_due(self) -> bool:
+        timed = self.every_s is not None and time.monotonic() - self._last_save >= self.every_s
+        return self._due or timed
+
     def _on_rollout_start(self) -> None:
-        if not self._due:
-            return
+        if self._is_due():
+            self._save()
+
+    def on_gradient_step(self) -> bool:
+        """Between two of PEARL's gradient steps: save there when due by time (never asks to stop); a checkpoint due
+        by calls (``--save-freq``) waits for the next iteration start, where rl_zoo3's users expect it."""
+        if self.every_s is not None and time.monotonic() - self._last_save >= self.every_s:
+            self._save()
+        return True
+
+    def _save(self) -> None:
         self._due = False
         model_path = self._checkpoint_path(extension="zip")
+        if self._previous and model_path in self._previous:
+            return  # nothing new since the last checkpoint (same step count, same gradient steps): keep it
         self.model.save(model_path)
         paths = [model_path]
         if getattr(self.model, "replay_buffer", None) is not None and hasattr(self.model, "save_replay_buffer"):
             buffer_path = self._checkpoint_path("replay_buffer_", extension="pkl")
             self.model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
             paths.append(buffer_path)
+        if self.keep_last:
+            for old in self._previous:
+                if old not in paths and os.path.exists(old):
+                    os.remove(old)
+        self._previous = paths
+        self.saved.append(paths)
+        self._last_save = time.monotonic()
         if self.verbose >= 1:
-            print(f"Saving resumable checkpoint to {', '.join(paths)}")
+            print(f"Saving resumable checkpoint to {', '.join(paths)}", flush=True)
+
+    def _checkpoint_path(self, checkpoint_type: str = "", extension: str = "") -> str:
+        """SB3's ``<prefix>_<steps>_steps``; inside an iteration's gradient steps ``<prefix>_<steps>_steps_u<updates>``."""
+        pending = int(getattr(self.model, "_pending_gradient_steps", 0))
+        steps = f"{self.num_timesteps}_steps" + (f"_u{int(getattr(self.model, '_n_updates', 0))}" if pending else "")
+        return os.path.join(self.save_path, f"{self.name_prefix}_{checkpoint_type}{steps}.{extension}")
 
 
 def checkpoint_replay_buffer_path(model_path: str) -> str | None:
     """
-    The replay buffer saved with a checkpoint: ``<prefix>_replay_buffer_<steps>_steps.pkl`` for
-    ``<prefix>_<steps>_steps.zip`` (None for a path of another form).
+    The replay buffer saved with a checkpoint: ``<prefix>_replay_buffer_<steps>_steps[_u<updates>].pkl`` for
+    ``<prefix>_<steps>_steps[_u<updates>].zip`` (None for a path of another form).
 
     :param model_path: the checkpoint's model zip
     :return: the buffer's path (which may not exist)
     """
     folder, name = os.path.split(model_path)
-    stem, suffix = os.path.splitext(name)
-    parts = stem.rsplit("_", 2)
-    if suffix != ".zip" or len(parts) != 3 or parts[2] != "steps" or not parts[1].isdigit():
+    match = re.fullmatch(r"(?P<prefix>.+)_(?P<steps>\d+)_steps(?P<updates>_u\d+)?\.zip", name)
+    if match is None:
         return None
-    return os.path.join(folder, f"{parts[0]}_replay_buffer_{parts[1]}_steps.pkl")
+    return os.path.join(folder, f"{match['prefix']}_replay_buffer_{match['steps']}_steps{match['updates'] or ''}.pkl")
 
 
 __all__ = ["MetaTestCallback", "MetaTestTrialCallback", "ResumableCheckpointCallback", "checkpoint_replay_buffer_path"]

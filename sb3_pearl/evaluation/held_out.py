@@ -37,6 +37,32 @@ META_TEST_DEFAULTS: dict[str, Any] = {"n_adapt": 5, "n_repeats": 1, "n_tasks": N
 DEFAULT_N_TASKS = 10
 
 
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_meta_test_settings(settings: Mapping[str, Any]) -> None:
+    """
+    Raise a ValueError naming the first meta-test setting out of its range; only the keys present are checked (a
+    partial ``meta_test`` entry is checked before the defaults fill it in). A value is never replaced by a default:
+    ``n_tasks=0`` is refused, not taken as "the model's test tasks", and ``deterministic='False'`` is refused, not
+    taken as true.
+
+    :param settings: some of ``n_adapt``, ``n_repeats``, ``n_tasks``, ``deterministic`` (:data:`META_TEST_DEFAULTS`)
+        and the zoo's ``eval_seed``
+    """
+    rules = {
+        "n_adapt": (lambda v: _is_int(v) and v >= 0, "an integer >= 0 (the last adapted trajectory k; 0: the prior only)"),
+        "n_repeats": (lambda v: _is_int(v) and v >= 1, "an integer >= 1 (prior draws per task)"),
+        "n_tasks": (lambda v: v is None or (_is_int(v) and v >= 1), "None (the model's test tasks) or an integer >= 1"),
+        "deterministic": (lambda v: isinstance(v, bool), "True or False"),
+        "eval_seed": (lambda v: _is_int(v) and v >= 0, "an integer >= 0 (the seed of the test tasks)"),
+    }
+    for key, (valid, expected) in rules.items():
+        if key in settings and not valid(settings[key]):
+            raise ValueError(f"meta_test {key} must be {expected}, got {settings[key]!r}")
+
+
 def default_n_tasks(model: Any) -> int:
     """The number of test tasks when the settings leave it open: the model's own ``n_test_tasks`` (else 10)."""
     return len(getattr(model, "test_tasks", None) or []) or DEFAULT_N_TASKS

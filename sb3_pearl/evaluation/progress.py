@@ -4,8 +4,10 @@
   collect data before the first gradient step. Algorithms that know it offer ``training_plan(total_timesteps)``
   (PEARL / PEARL+, Fine-Tune).
 - :class:`TrainingProgressCallback`: SB3's ``ProgressBarCallback`` made truthful for meta-RL. At the start it
-  announces the plan (and the collection-only phase); after the first iteration it prints the measured cost of an
-  env step and of a gradient step and the ETA of the whole run, and says so when that is more than a day on a CPU.
+  announces the plan (and the collection-only phase); once the first gradient steps are timed (20 of them, or 30 s of
+  them: within the first minute of training at any budget) it prints the measured cost of an env step and of a
+  gradient step and the ETA of the whole run, and says so when that is more than a day on a CPU; without the bar a
+  line every 30 s of gradient steps keeps saying where the run is.
   Its progress bar (optional) weighs env steps and gradient steps by their measured cost, so it reaches 100 %
   after the last gradient step, and shows the ETA of the same cost model. PEARL's ``train()`` tells it about
   every gradient step (``gradient_step_callback``), so the bar also moves during the gradient steps.
@@ -28,6 +30,9 @@ from sb3_pearl.common.type_aliases import TrainingPlan
 
 DAY_S = 86_400.0
 COLLECTION_LINE_S = 5.0  # without -P: a progress line every 5 s of the collection before the first gradient step
+TRAINING_LINE_S = 30.0  # without -P: a progress line every 30 s of gradient steps
+FIRST_TIMED_UPDATES = 20  # the cost per gradient step (and the ETA) is reported once this many are timed ...
+FIRST_TIMED_S = 30.0  # ... or once gradient steps have run this long, whichever comes first
 NON_TERMINAL_WIDTH = 140
 
 
@@ -138,8 +143,9 @@ class TrainingProgressCallback(ProgressBarCallback):
     With the model's :class:`TrainingPlan` (``model.training_plan(total_timesteps)``) the ETA is
     ``env steps left x seconds per env step + gradient steps left x seconds per gradient step``; without one it
     extrapolates the elapsed time per env step. Printed (``verbose >= 1``): the plan at the start, then once the
-    first iteration's gradient steps are done, the measured costs and the ETA, and ``slow_hint`` when the model
-    runs on a CPU and the ETA exceeds ``slow_after_s``.
+    first gradient steps are timed (PEARL's ``train()`` reports each one; other algorithms at the next rollout start
+    after the first iteration), the measured costs and the ETA, and ``slow_hint`` when the model runs on a CPU and
+    the ETA exceeds ``slow_after_s``; without the bar, a line every ``TRAINING_LINE_S`` seconds of gradient steps.
 
     :param progress_bar: show the progress bar
     :param slow_hint: what to do instead of a run longer than ``slow_after_s`` on a CPU (e.g. a smaller budget)
@@ -169,9 +175,8 @@ class TrainingProgressCallback(ProgressBarCallback):
         self.updates_start = int(getattr(self.model, "_n_updates", 0))
         self.t_collect = self.t_update = 0.0
         self.n_rollouts = 0
-        self.pending_updates = 0  # gradient steps of the running train() call (``_n_updates`` counts them at its end)
         now = time.monotonic()
-        self.t_start = self.phase_start = self.last_draw = self.last_line = now
+        self.t_start = self.phase_start = self.last_draw = self.last_line = self.last_training_line = now
         self.collecting = self.ended = False
         if hasattr(self.model, "gradient_step_callback"):
             self.model.gradient_step_callback = self._on_gradient_step
@@ -186,7 +191,6 @@ class TrainingProgressCallback(ProgressBarCallback):
         if not self.collecting:
             self.t_update += now - self.phase_start
         self.phase_start, self.collecting = now, True
-        self.pending_updates = 0
         self.n_rollouts += 1
         if not self.reported and self._first_iteration_done():
             self.reported = True
@@ -221,9 +225,32 @@ class TrainingProgressCallback(ProgressBarCallback):
         )
 
     def _on_gradient_step(self) -> None:
-        """Called by PEARL's ``train()`` after every gradient step."""
-        self.pending_updates += 1
+        """Called by PEARL's ``train()`` after every gradient step (``_n_updates`` counts it already)."""
         self._draw()
+        if not self.reported and self._first_updates_timed():
+            self.reported = True
+            if self.verbose >= 1:
+                self._report()
+        if self.bar is None and self.verbose >= 1 and time.monotonic() - self.last_training_line >= TRAINING_LINE_S:
+            self._training_line()
+
+    def _first_updates_timed(self) -> bool:
+        """Enough gradient steps timed for the cost per step: FIRST_TIMED_UPDATES of them, or FIRST_TIMED_S seconds."""
+        updates = self.updates_done()
+        return updates >= FIRST_TIMED_UPDATES or (updates > 0 and self._times()[1] >= FIRST_TIMED_S)
+
+    def _training_line(self) -> None:
+        """Without the bar: where the run is during gradient steps (a line every ``TRAINING_LINE_S`` seconds)."""
+        self.last_training_line = time.monotonic()
+        updates, eta = self.updates_done(), self.eta()
+        total = f"/{self.plan.gradient_steps:,}" if self.plan is not None else ""
+        _, per_update = self.costs()
+        cost = f" ({_per_unit(per_update)} per update)" if per_update is not None else ""
+        print(
+            f"Training: {updates:,}{total} gradient steps{cost}, {self.env_steps_done():,}/{self.total_env_steps:,} env "
+            f"steps, ETA {format_duration(eta) if eta is not None else '?'}; Ctrl-C saves the model",
+            flush=True,
+        )
 
     def _on_training_end(self) -> None:
         if self.ended:  # rl_zoo3's learn() ends callback 0 a second time
@@ -231,7 +258,6 @@ class TrainingProgressCallback(ProgressBarCallback):
         self.ended = True
         if hasattr(self.model, "gradient_step_callback"):
             self.model.gradient_step_callback = None
-        self.pending_updates = 0
         stopped = self.env_steps_done() < self.total_env_steps
         if (
             self.verbose >= 1
@@ -252,7 +278,7 @@ class TrainingProgressCallback(ProgressBarCallback):
 
     def updates_done(self) -> int:
         """Gradient steps taken since the start of this ``learn()``."""
-        return int(getattr(self.model, "_n_updates", 0)) - self.updates_start + self.pending_updates
+        return int(getattr(self.model, "_n_updates", 0)) - self.updates_start
 
     def _first_iteration_done(self) -> bool:
         if self.plan is None:
@@ -296,14 +322,15 @@ class TrainingProgressCallback(ProgressBarCallback):
             )
         if self.plan.gradient_steps == 0:
             line += " The run ends before the first gradient step: the model stays untrained."
-        print(line + " Cost per gradient step and ETA after the first iteration; Ctrl-C saves the model.", flush=True)
+        print(line + " Cost per gradient step and ETA after the first gradient steps; Ctrl-C saves the model.", flush=True)
 
     def _report(self) -> None:
         t_collect, t_update = self._times()
         env, updates = self.env_steps_done(), self.updates_done()
         eta = self.eta()
         device = getattr(getattr(self.model, "device", None), "type", "cpu")
-        line = f"First iteration: {env:,} env steps in {format_duration(t_collect)}"
+        whole = self.plan is not None and updates >= self.plan.first_updates
+        line = f"{'First iteration' if whole else 'So far'}: {env:,} env steps in {format_duration(t_collect)}"
         if env > 0:
             line += f" ({_per_unit(t_collect / env)} per step)"
         if self.plan is not None and updates > 0:
@@ -346,7 +373,7 @@ class TrainingProgressCallback(ProgressBarCallback):
         self.bar.update(
             completed=completed,
             total=total,
-            eta="after the first iteration" if eta is None else eta,
+            eta="after the first gradient steps" if eta is None else eta,
             counts=counts,
             description=f"{type(self.model).__name__}: {phase}",
         )

@@ -118,12 +118,15 @@ def format_summary_table(entries: Sequence[dict[str, Any]]) -> str:
     :param entries: summary dicts
     :return: the table
     """
-    lines = [f"{'k':>3} {'return':>20} {'CVaR10%':>10} {'viol. rate':>10} {'95% CI':>15} {'cum. viol.':>10}"]
+    measures = [(key, label) for key, label in JOB_MEASURES.items() if any(key in e for e in entries)]
+    header = f"{'k':>3} {'return':>20} {'CVaR10%':>10} {'viol. rate':>10} {'95% CI':>15} {'cum. viol.':>10}"
+    lines = [header + "".join(f" {label:>20}" for _, label in measures)]
     for e in entries:
         ret = f"{e['return_mean']:.2f} +- {e['return_std']:.2f}"
         ci = f"[{e['violation_ci_low']:.2f}, {e['violation_ci_high']:.2f}]"
         rates = f"{e['violation_rate']:>10.2f} {ci:>15} {e['cum_violations']:>10.2f}"
-        lines.append(f"{e['k']:>3} {ret:>20} {e['return_cvar10']:>10.2f} {rates}")
+        extra = "".join(f" {e.get(key, math.nan):>20.2f}" for key, _ in measures)
+        lines.append(f"{e['k']:>3} {ret:>20} {e['return_cvar10']:>10.2f} {rates}{extra}")
     return "\n".join(lines)
 
 
@@ -139,6 +142,9 @@ def _prior_posterior_cells(entry: dict[str, Any]) -> list[str]:
 
 
 PRIOR_POSTERIOR_ROWS = ("return, mean +- std", "return, CVaR 10%", "violations, % [95%]", "cum. violations")
+# A family's own measure of the job, shown beside return and violations where the family records it per trajectory
+# (its ``trajectory_info_keys``): summary key -> row label.
+JOB_MEASURES = {"velocity_error_mean": "velocity error, m/s"}
 
 
 def format_prior_posterior_table(entries: Sequence[dict[str, Any]], max_columns: int = 6) -> str:
@@ -158,14 +164,21 @@ def format_prior_posterior_table(entries: Sequence[dict[str, Any]], max_columns:
         block = entries[start : start + step]
         titles = [f"k = {entry['k']}" + (" (prior)" if entry["k"] == 0 else "") for entry in block]
         cells = [_prior_posterior_cells(entry) for entry in block]
+        labels = list(PRIOR_POSTERIOR_ROWS)
+        for key, label in JOB_MEASURES.items():
+            if any(key in entry for entry in block):
+                labels.append(label)
+                for column, entry in zip(cells, block):
+                    column.append(f"{entry.get(key, math.nan):.2f}")
         lines = [" " * label_width + "".join(f"{title:>{width}}" for title in titles)]
-        for row, label in enumerate(PRIOR_POSTERIOR_ROWS):
+        for row, label in enumerate(labels):
             lines.append(f"{label:<{label_width}}" + "".join(f"{column[row]:>{width}}" for column in cells))
         blocks.append("\n".join(lines))
     return "\n\n".join(blocks)
 
 
 __all__ = [
+    "JOB_MEASURES",
     "PRIOR_POSTERIOR_ROWS",
     "SUMMARY_COLUMNS",
     "WILSON_Z95",

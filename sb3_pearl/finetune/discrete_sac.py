@@ -12,6 +12,7 @@ used without a latent input.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -142,6 +143,33 @@ class DiscreteSACPolicy(BasePolicy):
         self.training = mode
 
 
+def check_sac_arguments(arguments: Mapping[str, Any]) -> None:
+    """
+    Raise a ValueError for the first SAC argument of :class:`DiscreteSAC` out of its range (see its docstring).
+
+    Called at the top of ``DiscreteSAC.__init__`` with its bound arguments (``locals()``), and by ``load`` on a loaded
+    model's settings (:class:`~sb3_pearl.finetune.FineTune`).
+
+    :param arguments: ``DiscreteSAC.__init__``'s arguments by name, defaults included
+    """
+    args = arguments
+    check_int("batch_size", args["batch_size"], 1, hint="minibatch size of meta-training")
+    check_int("buffer_size", args["buffer_size"], 1, hint="replay buffer size of meta-training")
+    check_int("learning_starts", args["learning_starts"], 0, hint="random-action steps before the first gradient step")
+    check_int("target_update_interval", args["target_update_interval"], 1, hint="gradient steps between target updates")
+    check_int("n_steps", args["n_steps"], 1, hint="n-step returns; 1 for one-step")
+    gradient_steps = args["gradient_steps"]
+    if not (is_integer(gradient_steps) and (gradient_steps >= 0 or gradient_steps == -1)):
+        raise ValueError(f"gradient_steps must be an integer >= 0, or -1 (as many as env steps), got {gradient_steps!r}")
+    check_learning_rate("learning_rate", args["learning_rate"])
+    check_gamma(args["gamma"])
+    check_tau(args["tau"])
+    check_ent_coef(args["ent_coef"])
+    if args["target_entropy"] != "auto":
+        check_real("target_entropy", args["target_entropy"], hint="or 'auto'")
+    check_arch("policy_kwargs['net_arch']", (args["policy_kwargs"] or {}).get("net_arch"))
+
+
 class DiscreteSAC(SAC):
     """
     Soft Actor-Critic for Box *and* Discrete action spaces.
@@ -226,20 +254,7 @@ class DiscreteSAC(SAC):
         _init_setup_model: bool = True,
     ):
         # Every argument checked before anything is built (docs/reliability.md).
-        check_int("batch_size", batch_size, 1, hint="minibatch size of meta-training")
-        check_int("buffer_size", buffer_size, 1, hint="replay buffer size of meta-training")
-        check_int("learning_starts", learning_starts, 0, hint="random-action steps before the first gradient step")
-        check_int("target_update_interval", target_update_interval, 1, hint="gradient steps between target updates")
-        check_int("n_steps", n_steps, 1, hint="n-step returns; 1 for one-step")
-        if not (is_integer(gradient_steps) and (gradient_steps >= 0 or gradient_steps == -1)):
-            raise ValueError(f"gradient_steps must be an integer >= 0, or -1 (as many as env steps), got {gradient_steps!r}")
-        check_learning_rate("learning_rate", learning_rate)
-        check_gamma(gamma)
-        check_tau(tau)
-        check_ent_coef(ent_coef)
-        if target_entropy != "auto":
-            check_real("target_entropy", target_entropy, hint="or 'auto'")
-        check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
+        check_sac_arguments(locals())
         # SAC.__init__ admits Box action spaces only (an assertion): run its parent with both
         # spaces admitted, then set SAC's own attributes exactly as SAC.__init__ does.
         OffPolicyAlgorithm.__init__(

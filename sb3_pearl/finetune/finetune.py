@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
 
@@ -25,22 +25,42 @@ from stable_baselines3.common.utils import ConstantSchedule, get_parameters_by_n
 from stable_baselines3.sac.policies import SACPolicy
 
 from sb3_pearl.common.adaptation import stored_action
-from sb3_pearl.common.checks import (
-    check_real,
-)
+from sb3_pearl.common.checks import check_int, check_real
 from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
-from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin
+from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, saved_arguments
 from sb3_pearl.common.tasks import env_time_limit
 from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
-from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy
+from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy, check_sac_arguments
 
 SelfFineTune = TypeVar("SelfFineTune", bound="FineTune")
 
 # Attributes that the adaptation gradient steps swap in, so that the soft actor-critic step of
 # training (``train``) runs unchanged on the fine-tuned copy and the new task's buffer.
 _ADAPTATION_STATE = ("policy", "log_ent_coef", "ent_coef_optimizer", "replay_buffer", "lr_schedule", "_n_updates", "_logger")
+
+
+def check_finetune_arguments(arguments: Mapping[str, Any]) -> None:
+    """
+    Raise a ValueError for the first argument of :class:`FineTune` (its own; SAC's are
+    :func:`~sb3_pearl.finetune.discrete_sac.check_sac_arguments`) out of its range (see its docstring).
+
+    Called at the top of ``FineTune.__init__`` with its bound arguments (``locals()``), and by ``load`` on a loaded
+    model's settings.
+
+    :param arguments: ``FineTune.__init__``'s arguments by name, defaults included
+    """
+    args = arguments
+    check_task_arguments(args["n_train_tasks"], args["n_test_tasks"], args["train_tasks"], args["test_tasks"])
+    check_int("adapt_gradient_steps", args["adapt_gradient_steps"], 0, hint="gradient steps per adapt() call")
+    if args["adapt_batch_size"] is not None:
+        check_int("adapt_batch_size", args["adapt_batch_size"], 1, hint="or None: batch_size")
+    if args["adapt_learning_rate"] is not None:
+        check_real("adapt_learning_rate", args["adapt_learning_rate"], 0.0, hint="or None: the meta-training learning rate")
+    check_int("adapt_buffer_size", args["adapt_buffer_size"], 1, hint="capacity of the new task's replay buffer")
+    if args["max_episode_steps"] is not None:
+        check_int("max_episode_steps", args["max_episode_steps"], 1, hint="or None: the env's registered time limit")
 
 
 class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
@@ -116,17 +136,7 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
         **kwargs: Any,
     ):
         # Every argument checked before anything is built (docs/reliability.md); SAC's by DiscreteSAC.__init__.
-        check_task_arguments(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
-        if adapt_gradient_steps < 0:
-            raise ValueError(f"adapt_gradient_steps must be >= 0, got {adapt_gradient_steps}")
-        if adapt_batch_size is not None and adapt_batch_size < 1:
-            raise ValueError(f"adapt_batch_size must be >= 1 or None, got {adapt_batch_size}")
-        if adapt_learning_rate is not None:
-            check_real("adapt_learning_rate", adapt_learning_rate, 0.0, hint="or None: the meta-training learning rate")
-        if adapt_buffer_size < 1:
-            raise ValueError(f"adapt_buffer_size must be >= 1, got {adapt_buffer_size}")
-        if max_episode_steps is not None and max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be >= 1 or None, got {max_episode_steps}")
+        check_finetune_arguments(locals())
         super().__init__(policy, env, _init_setup_model=False, **kwargs)
         self._init_meta_algorithm(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
         self.max_episode_steps = max_episode_steps
@@ -154,6 +164,17 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_adapted", "_adapt_buffer", "_adapt_episode_steps", "adapt_stats"]
+
+    @classmethod
+    def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
+        """
+        The constructor's checks on a loaded model's hyperparameters: SAC's (:func:`check_sac_arguments`) and
+        Fine-Tune's own (:func:`check_finetune_arguments`); the oracle's too (a Fine-Tune without fine-tuning).
+
+        :param saved: the attributes by name
+        """
+        check_sac_arguments(saved_arguments(DiscreteSAC.__init__, saved))
+        check_finetune_arguments(saved_arguments(FineTune.__init__, saved))
 
     # ------------------------------------------------------------------------------------------
     # Meta-training on the mixture of the training tasks

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Mapping
 from functools import partial
 from typing import Any, ClassVar, TypeVar
 
@@ -35,7 +36,7 @@ from torch.nn.utils import parameters_to_vector
 
 from sb3_pearl.common.checks import check_arch, check_gamma, check_int, check_real
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
-from sb3_pearl.common.persistence import SaveLoadMixin
+from sb3_pearl.common.persistence import SaveLoadMixin, saved_arguments
 from sb3_pearl.common.tasks import env_time_limit
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.advantages import compute_advantages, split_task_samples
@@ -45,6 +46,34 @@ from sb3_pearl.maml.trpo import conjugate_gradient, fisher_vector_product, line_
 from sb3_pearl.maml.type_aliases import EpisodeBatch, OldPolicy, TaskSamples, TRPOInfo
 
 SelfMAML = TypeVar("SelfMAML", bound="MAML")
+
+
+def check_maml_arguments(arguments: Mapping[str, Any]) -> None:
+    """
+    Raise a ValueError for the first argument of :class:`MAML` out of its range (see its docstring).
+
+    Called at the top of ``MAML.__init__`` with its bound arguments (``locals()``), and by ``load`` on a loaded model's
+    settings.
+
+    :param arguments: ``MAML.__init__``'s arguments by name, defaults included
+    """
+    args = arguments
+    check_real("inner_lr", args["inner_lr"], 0.0, hint="step size of the inner policy-gradient update, e.g. 0.1")
+    check_int("num_inner_steps", args["num_inner_steps"], 1, hint="inner updates per task")
+    check_int("meta_batch_size", args["meta_batch_size"], 1, hint="tasks per meta-iteration")
+    check_int("episodes_per_task", args["episodes_per_task"], 1, hint="trajectories per task before and after adaptation")
+    check_task_arguments(args["n_train_tasks"], args["n_test_tasks"], args["train_tasks"], args["test_tasks"])
+    if args["max_episode_steps"] is not None:
+        check_int("max_episode_steps", args["max_episode_steps"], 1, hint="or None: the env's registered time limit")
+    check_gamma(args["gamma"])
+    check_real("gae_lambda", args["gae_lambda"], 0.0, 1.0, hint="GAE lambda; 1: Monte-Carlo returns minus the baseline")
+    check_real("baseline_reg", args["baseline_reg"], 0.0, hint="ridge coefficient of the linear baseline")
+    check_real("max_kl", args["max_kl"], 0.0, low_open=True, hint="KL bound of the TRPO step, e.g. 0.01")
+    check_int("cg_iters", args["cg_iters"], 1, hint="conjugate-gradient iterations")
+    check_real("cg_damping", args["cg_damping"], 0.0, hint="damping of the Fisher-vector products")
+    check_real("ls_backtrack_ratio", args["ls_backtrack_ratio"], 0.0, 1.0, low_open=True, high_open=True, hint="e.g. 0.8")
+    check_int("ls_max_steps", args["ls_max_steps"], 1, hint="line-search candidates")
+    check_arch("policy_kwargs['net_arch']", (args["policy_kwargs"] or {}).get("net_arch"))
 
 
 class MAML(MetaAlgorithm, SaveLoadMixin, BaseAlgorithm):
@@ -126,22 +155,7 @@ class MAML(MetaAlgorithm, SaveLoadMixin, BaseAlgorithm):
         _init_setup_model: bool = True,
     ) -> None:
         # Every argument checked before anything is built (docs/reliability.md).
-        check_real("inner_lr", inner_lr, 0.0, hint="step size of the inner policy-gradient update, e.g. 0.1")
-        check_int("num_inner_steps", num_inner_steps, 1, hint="inner updates per task")
-        check_int("meta_batch_size", meta_batch_size, 1, hint="tasks per meta-iteration")
-        check_int("episodes_per_task", episodes_per_task, 1, hint="trajectories per task before and after adaptation")
-        check_task_arguments(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
-        if max_episode_steps is not None:
-            check_int("max_episode_steps", max_episode_steps, 1, hint="or None: the env's registered time limit")
-        check_gamma(gamma)
-        check_real("gae_lambda", gae_lambda, 0.0, 1.0, hint="GAE lambda; 1: Monte-Carlo returns minus the baseline")
-        check_real("baseline_reg", baseline_reg, 0.0, hint="ridge coefficient of the linear baseline")
-        check_real("max_kl", max_kl, 0.0, low_open=True, hint="KL bound of the TRPO step, e.g. 0.01")
-        check_int("cg_iters", cg_iters, 1, hint="conjugate-gradient iterations")
-        check_real("cg_damping", cg_damping, 0.0, hint="damping of the Fisher-vector products")
-        check_real("ls_backtrack_ratio", ls_backtrack_ratio, 0.0, 1.0, low_open=True, high_open=True, hint="e.g. 0.8")
-        check_int("ls_max_steps", ls_max_steps, 1, hint="line-search candidates")
-        check_arch("policy_kwargs['net_arch']", (policy_kwargs or {}).get("net_arch"))
+        check_maml_arguments(locals())
         super().__init__(
             policy,
             env,
@@ -199,6 +213,15 @@ class MAML(MetaAlgorithm, SaveLoadMixin, BaseAlgorithm):
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_adapt_episodes", "_current_episode"]
+
+    @classmethod
+    def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
+        """
+        The constructor's checks (:func:`check_maml_arguments`) on a loaded model's hyperparameters.
+
+        :param saved: the attributes by name
+        """
+        check_maml_arguments(saved_arguments(MAML.__init__, saved))
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy"], []

@@ -15,6 +15,7 @@ and every k acts with the same policy. The meta-test wraps the env it is given w
 
 from __future__ import annotations
 
+import functools
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -42,7 +43,7 @@ def with_task_observation(env: gym.Env | VecEnv) -> gym.Env | VecEnv:
         if all(env.env_is_wrapped(TaskObservation)):
             return env
         if type(env) is DummyVecEnv:
-            return DummyVecEnv([lambda inner=inner: TaskObservation(inner) for inner in env.envs])
+            return DummyVecEnv([functools.partial(TaskObservation, inner) for inner in env.envs])
         raise ValueError(
             f"Oracle: the {type(env).__name__} given does not put the task in its observations; build its envs with "
             "wrapper_class=sb3_pearl.envs.task_observation.TaskObservation (make_vec_env) or pass a single env"

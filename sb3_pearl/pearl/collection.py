@@ -257,7 +257,10 @@ def plan_training(model: PEARL, total_timesteps: int) -> TrainingPlan:
     chunks += [(per_iteration, per_iteration)] * full + ([(rest, per_iteration)] if rest > 0 else [])
     carry = model.partial_iteration == "carry"  # an unfinished last iteration is trained by a later learn()
     updates = [0 if carry and done < planned else math.ceil(steps * done / planned) for done, planned in chunks]
-    initial = chunks[0][0] if chunks and open_iteration is None and without_data > 0 else 0
+    pending = int(model._pending_gradient_steps)  # an iteration whose gradient steps a stop interrupted: trained first
+    if pending > 0:
+        updates.insert(0, pending)
+    initial = chunks[0][0] if chunks and open_iteration is None and without_data > 0 and pending == 0 else 0
     note = ""
     if initial:
         per_task, planned = model.num_initial_steps, model.num_initial_steps * without_data

@@ -9,7 +9,7 @@ from __future__ import annotations
 import io
 import math
 import pathlib
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -22,10 +22,16 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_pearl.common.buffers import MetaReplayBuffer
+from sb3_pearl.common.callbacks import gradient_step_event
 from sb3_pearl.common.divergence import NonFiniteUpdateGuard
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm
 from sb3_pearl.common.networks import polyak_update_foreach
-from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, check_buffer_tasks, read_replay_buffer
+from sb3_pearl.common.persistence import (
+    ReplayBufferSaveLoadMixin,
+    check_buffer_tasks,
+    read_replay_buffer,
+    saved_arguments,
+)
 from sb3_pearl.common.precision import resolve_bf16
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
@@ -134,6 +140,11 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
     prior_return_steps = 0  # n of the prior critic's n-step returns with prior_target="mc" (0: Monte-Carlo)
     # Called after every gradient step of train() while set (the progress callback sets it during learn()); never saved.
     gradient_step_callback: Callable[[], None] | None = None
+    # The callbacks of the running learn(): told of every gradient step (gradient_step_event), never saved.
+    _learn_callback: BaseCallback | None = None
+    # Gradient steps of the current iteration still to train: a stop between two gradient steps leaves them here, saved
+    # with the model, and the resumed learn() trains them first (0: none pending; older zips have none).
+    _pending_gradient_steps: int = 0
 
     def __init__(
         self,
@@ -379,12 +390,17 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             targets += self.prior_critic_target.parameters()
         return sources, targets
 
-    def train(self, gradient_steps: int, batch_size: int = 256) -> None:
+    def train(self, gradient_steps: int, batch_size: int = 256) -> int:  # type: ignore[override]
         """
         ``gradient_steps`` steps of Algorithm 1's inner loop, each over ``meta_batch`` tasks.
 
+        During ``learn()`` the callbacks are told of every gradient step (:func:`gradient_step_event`); one that asks
+        to stop (a signal, a checkpoint) stops it between two steps, where the model's state (weights, optimizers,
+        RNG streams, ``_n_updates`` and the iteration's steps still to train) is one a saved model resumes exactly.
+
         :param gradient_steps: number of gradient steps
         :param batch_size: RL transitions per task in each step (``learn`` passes ``self.batch_size``)
+        :return: the gradient steps taken (``gradient_steps`` unless a stop was asked for)
         """
         self.policy.set_training_mode(True)
         optimizers = self.policy.optimizers()
@@ -394,11 +410,17 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         parameters = [p for optimizer in optimizers for group in optimizer.param_groups for p in group["params"]]
         critic_params, critic_target_params = self._target_pairs()
         logs: dict[str, list[float]] = {}
-        for step in range(gradient_steps):
+        steps_done = 0
+        for _ in range(gradient_steps):
+            if steps_done > 0 and self._learn_callback is not None and not gradient_step_event(self._learn_callback):
+                break  # a stop was asked for: the state here is one a saved model resumes exactly
+            steps_done += 1
+            self._n_updates += 1
+            self._pending_gradient_steps = max(self._pending_gradient_steps - 1, 0)
             replay, context, z0 = self._sample_meta_batch(batch_size)
             with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self._bf16_enabled):
                 losses = self._compute_losses(replay, context, z0)
-            if self.grad_conflict_log_freq > 0 and (self._n_updates + step) % self.grad_conflict_log_freq == 0:
+            if self.grad_conflict_log_freq > 0 and (self._n_updates - 1) % self.grad_conflict_log_freq == 0:
                 record_gradient_conflict(self, losses, logs)  # two extra actor-only backward passes
             for optimizer in optimizers:
                 optimizer.zero_grad(set_to_none=True)
@@ -426,13 +448,13 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
                 ("z_var", losses.z_var.mean()),
             ):
                 logs.setdefault(key, []).append(float(value.item()))
-        self._n_updates += gradient_steps
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         if self._update_guard.skipped:
             self.logger.record("train/skipped_updates", self._update_guard.skipped)
         for key, values in logs.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
+        return steps_done
 
     # ------------------------------------------------------------------------------------------
     # The meta-training loop
@@ -461,28 +483,42 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         )
         callback.on_training_start(locals(), globals())
         assert self.env is not None
-        while self.num_timesteps < total_timesteps:
-            state = self._open_iteration  # an iteration a previous learn() left open ("carry"), or a new one
-            if state is None:
-                callback.on_rollout_start()  # before plan_iteration's draws: a checkpoint saved here resumes exactly
-                state = start_iteration(self, plan_iteration(self))
-            continue_training = collect_iteration(self, self.env, callback, state)
-            if not state.finished and (self.partial_iteration == "carry" or not continue_training):
-                self._open_iteration = state  # finished by the next learn(); nothing trained on it yet
-                break
-            finish_open_pieces(self, state)  # trained now: a trajectory the budget ended inside is cut here
-            self._open_iteration = None
-            if not continue_training:
-                break
-            if state.collected > 0:  # "train": a budget ending inside the iteration trains the collected share
-                gradient_steps = math.ceil(self.num_train_steps_per_itr * state.collected / max(state.planned, 1))
-                self.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
+        self._learn_callback = callback
+        try:
+            self._learn_iterations(total_timesteps, callback, log_interval)
+        finally:
+            self._learn_callback = None
+        callback.on_training_end()
+        return self
+
+    def _learn_iterations(self, total_timesteps: int, callback: BaseCallback, log_interval: int) -> None:
+        """Algorithm 1's outer loop: collect an iteration's data, then train its gradient steps (see :meth:`learn`)."""
+        assert self.env is not None
+        while self.num_timesteps < total_timesteps or self._pending_gradient_steps > 0:
+            if self._pending_gradient_steps == 0:  # else: an iteration whose gradient steps a stop interrupted
+                state = self._open_iteration  # an iteration a previous learn() left open ("carry"), or a new one
+                if state is None:
+                    callback.on_rollout_start()  # before plan_iteration's draws: a checkpoint saved here resumes exactly
+                    state = start_iteration(self, plan_iteration(self))
+                continue_training = collect_iteration(self, self.env, callback, state)
+                if not state.finished and (self.partial_iteration == "carry" or not continue_training):
+                    self._open_iteration = state  # finished by the next learn(); nothing trained on it yet
+                    return
+                finish_open_pieces(self, state)  # trained now: a trajectory the budget ended inside is cut here
+                self._open_iteration = None
+                if not continue_training:
+                    return
+                if state.collected > 0:  # "train": a budget ending inside the iteration trains the collected share
+                    steps = math.ceil(self.num_train_steps_per_itr * state.collected / max(state.planned, 1))
+                    self._pending_gradient_steps = steps
+            if self._pending_gradient_steps > 0:
+                self.train(gradient_steps=self._pending_gradient_steps, batch_size=self.batch_size)
+                if self._pending_gradient_steps > 0:
+                    return  # stopped between two gradient steps: the rest trains first when learn() resumes
             self.n_iterations += 1
             self.logger.record("time/iterations", self.n_iterations)
             if log_interval and self.n_iterations % log_interval == 0:
                 self.dump_logs()
-        callback.on_training_end()
-        return self
 
     def _setup_learn(
         self,
@@ -506,7 +542,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
     # ------------------------------------------------------------------------------------------
     def _excluded_save_params(self) -> list[str]:
         networks = ["encoder", "actor", "critic", "critic_target", "prior_critic", "prior_critic_target"]
-        unsaved = ["_adapt_context", "_update_guard", "_bf16_enabled", "gradient_step_callback"]
+        unsaved = ["_adapt_context", "_update_guard", "_bf16_enabled", "gradient_step_callback", "_learn_callback"]
         return [*super()._excluded_save_params(), *networks, *unsaved]
 
     def set_parameters(
@@ -548,6 +584,36 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             raise ValueError(
                 f"{path} holds a PEARL+ model (prior_coef={prior_coef}, prior_critic={mode!r}): load it with PEARLPlus.load; "
                 f"{cls.__name__}.load would drop its prior term and prior critic"
+            )
+
+    @classmethod
+    def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
+        """
+        The constructor's checks (:func:`~sb3_pearl.pearl.arguments.check_pearl_arguments`) on a loaded model's
+        hyperparameters (``latent_dim`` and ``encoder_arch`` are kept in ``policy_kwargs``), then the prior term's
+        (:meth:`_check_saved_prior_arguments`).
+
+        :param saved: the attributes by name
+        """
+        policy_kwargs = saved.get("policy_kwargs")
+        policy_kwargs = policy_kwargs if isinstance(policy_kwargs, dict) else {}
+        derived = {key: policy_kwargs[key] for key in ("latent_dim", "encoder_arch") if key in policy_kwargs}
+        check_pearl_arguments(saved_arguments(PEARL.__init__, saved, **derived))
+        cls._check_saved_prior_arguments(saved)
+
+    @classmethod
+    def _check_saved_prior_arguments(cls, saved: Mapping[str, Any]) -> None:
+        """
+        PEARL has no prior term: its ``prior_coef`` (saved with every model) must stay 0 (:class:`PEARLPlus` checks its
+        own prior settings).
+
+        :param saved: the attributes by name
+        """
+        prior_coef = saved.get("prior_coef", 0.0)
+        if prior_coef != 0.0:  # a nan too
+            raise ValueError(
+                f"prior_coef must be 0 for PEARL (it has no prior term), got {prior_coef!r}: a PEARL+ model loads with "
+                "PEARLPlus.load"
             )
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:

@@ -6,11 +6,13 @@ Pre-Adaptation of Meta Reinforcement Learning with Prior Regularization", arXiv:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, TypeVar
 
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_pearl.common.checks import check_arch, check_int, check_real
+from sb3_pearl.common.persistence import saved_arguments
 from sb3_pearl.pearl.pearl import PEARL
 from sb3_pearl.pearl.policies import PRIOR_CRITIC_INPUTS, PRIOR_CRITIC_MODES, PEARLPolicy
 
@@ -18,6 +20,56 @@ SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
 
 PRIOR_DATA_MODES = ("all", "prior")
 PRIOR_TARGETS = ("prior", "main", "mc")
+
+
+def check_pearl_plus_arguments(arguments: Mapping[str, Any]) -> None:
+    """
+    Raise a ValueError for the first prior-term argument of :class:`PEARLPlus` out of its range (see its docstring).
+
+    Called at the top of ``PEARLPlus.__init__`` with its bound arguments (``locals()``), and by ``load`` on a loaded
+    model's settings.
+
+    :param arguments: ``PEARLPlus.__init__``'s arguments by name, defaults included
+    """
+    prior_coef, prior_critic = arguments["prior_coef"], arguments["prior_critic"]
+    prior_data, prior_critic_input = arguments["prior_data"], arguments["prior_critic_input"]
+    prior_target, prior_conservative_weight = arguments["prior_target"], arguments["prior_conservative_weight"]
+    prior_return_steps = arguments["prior_return_steps"]
+    check_real("prior_coef", prior_coef, 0.0, hint="the paper's alpha, default 0.1; 0 gives PEARL")
+    check_arch("prior_critic_arch", arguments["prior_critic_arch"])
+    check_int("prior_n_critics", arguments["prior_n_critics"], 1, hint="Q networks of the prior critic")
+    modes = tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none")
+    if prior_critic not in modes:
+        raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {modes} (PEARL has none)")
+    if prior_data not in PRIOR_DATA_MODES:
+        raise ValueError(
+            f"unknown prior_data {prior_data!r}: expected one of {PRIOR_DATA_MODES} (the replay rows the prior terms "
+            "use: all of them, as in the paper, or only those collected with z from the prior)"
+        )
+    if prior_critic_input not in PRIOR_CRITIC_INPUTS:
+        raise ValueError(
+            f"unknown prior_critic_input {prior_critic_input!r}: expected one of {PRIOR_CRITIC_INPUTS} "
+            "(the paper's Q~(s, a, z0), or a z-free Q~(s, a))"
+        )
+    if prior_target not in PRIOR_TARGETS:
+        raise ValueError(
+            f"unknown prior_target {prior_target!r}: expected one of {PRIOR_TARGETS} (the prior critic's own target "
+            "network, as in the paper, or the critic's target network at z0)"
+        )
+    check_real("prior_conservative_weight", prior_conservative_weight, 0.0, hint="0 turns the CQL penalty off")
+    check_int("prior_return_steps", prior_return_steps, 0, hint="n-step returns with prior_target='mc'; 0: to the end")
+    if prior_return_steps > 0 and prior_target != "mc":
+        raise ValueError(
+            f"prior_return_steps={prior_return_steps} sets the horizon of Monte-Carlo targets: use it with "
+            f"prior_target='mc' (got prior_target={prior_target!r})"
+        )
+    if prior_critic == "shared" and (
+        prior_critic_input != "state_z0" or prior_target != "prior" or prior_conservative_weight > 0
+    ):
+        raise ValueError(
+            "prior_critic_input, prior_target and prior_conservative_weight configure the separate prior critic: "
+            "prior_critic='shared' has none (use prior_critic='separate')"
+        )
 
 
 class PEARLPlus(PEARL):
@@ -83,41 +135,8 @@ class PEARLPlus(PEARL):
         _init_setup_model: bool = True,
         **kwargs: Any,
     ):
-        check_real("prior_coef", prior_coef, 0.0, hint="the paper's alpha, default 0.1; 0 gives PEARL")
-        check_arch("prior_critic_arch", prior_critic_arch)
-        check_int("prior_n_critics", prior_n_critics, 1, hint="Q networks of the prior critic")
-        modes = tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none")
-        if prior_critic not in modes:
-            raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {modes} (PEARL has none)")
-        if prior_data not in PRIOR_DATA_MODES:
-            raise ValueError(
-                f"unknown prior_data {prior_data!r}: expected one of {PRIOR_DATA_MODES} (the replay rows the prior terms "
-                "use: all of them, as in the paper, or only those collected with z from the prior)"
-            )
-        if prior_critic_input not in PRIOR_CRITIC_INPUTS:
-            raise ValueError(
-                f"unknown prior_critic_input {prior_critic_input!r}: expected one of {PRIOR_CRITIC_INPUTS} "
-                "(the paper's Q~(s, a, z0), or a z-free Q~(s, a))"
-            )
-        if prior_target not in PRIOR_TARGETS:
-            raise ValueError(
-                f"unknown prior_target {prior_target!r}: expected one of {PRIOR_TARGETS} (the prior critic's own target "
-                "network, as in the paper, or the critic's target network at z0)"
-            )
-        check_real("prior_conservative_weight", prior_conservative_weight, 0.0, hint="0 turns the CQL penalty off")
-        check_int("prior_return_steps", prior_return_steps, 0, hint="n-step returns with prior_target='mc'; 0: to the end")
-        if prior_return_steps > 0 and prior_target != "mc":
-            raise ValueError(
-                f"prior_return_steps={prior_return_steps} sets the horizon of Monte-Carlo targets: use it with "
-                f"prior_target='mc' (got prior_target={prior_target!r})"
-            )
-        if prior_critic == "shared" and (
-            prior_critic_input != "state_z0" or prior_target != "prior" or prior_conservative_weight > 0
-        ):
-            raise ValueError(
-                "prior_critic_input, prior_target and prior_conservative_weight configure the separate prior critic: "
-                "prior_critic='shared' has none (use prior_critic='separate')"
-            )
+        # Every argument checked before anything is built (docs/reliability.md); PEARL's by PEARL.__init__.
+        check_pearl_plus_arguments(locals())
         super().__init__(policy, env, _init_setup_model=False, **kwargs)
         self.prior_coef = prior_coef
         self.prior_critic_mode = prior_critic
@@ -135,6 +154,24 @@ class PEARLPlus(PEARL):
             self.policy_kwargs["prior_critic_arch"] = prior_critic_arch
         if _init_setup_model:
             self._setup_model()
+
+    @classmethod
+    def _check_saved_prior_arguments(cls, saved: Mapping[str, Any]) -> None:
+        """
+        :func:`check_pearl_plus_arguments` on a loaded model's prior settings (``prior_critic`` is saved as
+        ``prior_critic_mode``, its architecture and inputs in ``policy_kwargs``). A PEARL model (no prior critic,
+        ``prior_coef`` 0), which ``PEARLPlus.load`` takes, has no prior setting to check.
+
+        :param saved: the attributes by name
+        """
+        mode, prior_coef = saved.get("prior_critic_mode", "none"), saved.get("prior_coef", 0.0)
+        if mode == "none" and prior_coef == 0.0:
+            return
+        policy_kwargs = saved.get("policy_kwargs")
+        policy_kwargs = policy_kwargs if isinstance(policy_kwargs, dict) else {}
+        keys = ("prior_critic_arch", "prior_n_critics", "prior_critic_input")
+        derived = {key: policy_kwargs[key] for key in keys if key in policy_kwargs}
+        check_pearl_plus_arguments(saved_arguments(PEARLPlus.__init__, saved, prior_critic=mode, **derived))
 
     def learn(
         self: SelfPEARLPlus,

@@ -30,10 +30,12 @@ is written.
 
 from __future__ import annotations
 
+import csv
 import io
 import json
 import shutil
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -174,22 +176,59 @@ class _Unclosed(io.BytesIO):
         pass
 
 
+def csv_log_problem(text: str) -> str | None:
+    """
+    Why ``text`` is not a training log SB3's csv logger can continue (a header of column names, then rows of as many
+    fields), or None when it is.
+
+    :param text: the log's content
+    :return: the problem, or None
+    """
+    if not text.strip():
+        return "it is empty"
+    if "\x00" in text:
+        return "it holds NUL bytes (a file cut by a crash)"
+    rows = list(csv.reader(io.StringIO(text)))
+    header = rows[0] if rows else []
+    if not header or not all(name.strip() for name in header):
+        return "its first line is not a header of column names"
+    bad = next((index for index, row in enumerate(rows[1:], start=2) if row and len(row) != len(header)), None)
+    if bad is not None:
+        return f"line {bad} has {len(rows[bad - 1])} fields, the header {len(header)}"
+    return None
+
+
 def csv_logger_continuing(folder: Path, snapshot: Path | None) -> Logger:
     """
     SB3's csv logger on ``folder/progress.csv`` that continues the rows of ``snapshot`` (a resumed run) or starts empty.
+
+    A snapshot that is empty or cannot be parsed (:func:`csv_log_problem`) is not restored: the run's progress.csv is
+    kept as it is and continued, with a warning naming the snapshot (its rows after the checkpoint's step, if any,
+    then appear twice), rather than emptied.
 
     :param folder: the run folder
     :param snapshot: the training log saved with the checkpoint (None: a new log)
     :return: the logger
     """
-    output = CSVOutputFormat(str(folder / "progress.csv"))
+    path = folder / "progress.csv"
+    text = ""
     if snapshot is not None:
-        text = snapshot.read_text()
-        header = text.splitlines()[0] if text.strip() else ""
-        if header:
-            output.file.write(text if text.endswith("\n") else text + "\n")
-            output.file.flush()
-            output.keys = header.split(",")  # SB3 extends the header (and rewrites the file) for new keys, as usual
+        text = snapshot.read_text(errors="replace")
+        problem = csv_log_problem(text)
+        if problem is not None:
+            current = path.read_text(errors="replace") if path.is_file() else ""
+            kept = csv_log_problem(current) is None
+            warnings.warn(
+                f"{snapshot} is not restored: {problem}; "
+                + (f"{path} kept as it is and continued" if kept else f"{path} holds no log either: a new log starts"),
+                stacklevel=2,
+            )
+            text = current if kept else ""
+    output = CSVOutputFormat(str(path))  # truncates: the log is written back below
+    if text:
+        output.file.write(text if text.endswith("\n") else text + "\n")
+        output.file.flush()
+        output.keys = next(csv.reader(io.StringIO(text)))  # SB3 extends the header (and rewrites the file) for new keys
     return Logger(str(folder), [output])
 
 

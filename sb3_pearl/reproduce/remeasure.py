@@ -11,13 +11,20 @@ were, and the report shows both.
 The prior pass and the adapted pass share their first draws: the adapted pass's k = 0 rows are the prior pass's
 repeats 0..adapted_repeats-1 again (same env seeds, same z0). The record states whether they matched
 (``crn_check``), a free check that the meta-test is deterministic on this machine.
+
+A record is read only as its run's (:func:`read_remeasured`): an empty or unparsable file, one without its summary,
+or one that names another run (experiment, family, variant, seed: a copied file) or another eval seed than the run's
+``result.json`` is skipped with a warning naming the file, and ``remeasure`` measures such a run again instead of
+taking the file for a finished measurement.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
-from collections.abc import Callable, Sequence
+import warnings
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +33,16 @@ import gymnasium as gym
 from sb3_pearl.evaluation.held_out import meta_test_record, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import MetaTestResult, json_value
 from sb3_pearl.evaluation.statistics import summarize
-from sb3_pearl.experiments.table1_rules import RemeasureConfig
-from sb3_pearl.reproduce.layout import MODEL_FILE, RESULT_FILE, cpu_info, package_versions, read_run_result, write_json_atomic
+from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE, RemeasureConfig
+from sb3_pearl.reproduce.layout import (
+    MODEL_FILE,
+    RESULT_FILE,
+    check_result_path,
+    cpu_info,
+    package_versions,
+    read_run_result,
+    write_json_atomic,
+)
 
 MATCHED_COLUMNS = ("task", "repeat", "k", "return", "cost", "length", "violated")
 
@@ -95,22 +110,113 @@ def crn_check(prior: MetaTestResult, adapted: MetaTestResult) -> dict[str, Any]:
     return {"compared": compared, "mismatched": mismatched, "matched": compared > 0 and mismatched == 0}
 
 
-def remeasure_run(folder: Path, config: RemeasureConfig, force: bool = False) -> Path | None:
+IDENTITY_KEYS = ("experiment", "family", "variant", "seed")
+
+
+def remeasured_record_problem(path: Path, record: Any, result: Mapping[str, Any] | None = None) -> str | None:
+    """
+    Why a re-measured record cannot stand for the run of its folder, or None when it can.
+
+    :param path: the record, ``<results-dir>/<experiment>/<family>/<variant>/seed<N>/<file>``
+    :param record: its parsed content
+    :param result: the run's ``result.json`` (None: its eval seed is not compared)
+    :return: the problem, for a message naming the file
+    """
+    if not isinstance(record, dict):
+        return "does not hold a record (a JSON object)"
+    summary = record.get("summary")
+    if not isinstance(summary, list) or not summary or not all(isinstance(e, dict) and "k" in e for e in summary):
+        return "lacks its summary (entries per k)"
+    missing = [key for key in IDENTITY_KEYS if key not in record]
+    if missing:
+        return f"lacks {missing}, which tell the run it was measured from"
+    try:
+        check_result_path(path, record)
+    except ValueError as error:
+        parts = Path(path).parts
+        if len(parts) < 5:
+            return str(error).removeprefix(f"{path} ")
+        found = {**{key: record[key] for key in IDENTITY_KEYS[:3]}, "seed": f"seed{record['seed']}"}
+        expected = dict(zip(IDENTITY_KEYS, parts[-5:-1]))
+        wrong = [
+            f"{key} {found[key]!r} (its folder says {expected[key]!r})" for key in IDENTITY_KEYS if found[key] != expected[key]
+        ]
+        return f"holds the record of another run: {', '.join(wrong)} (a copied file?)"
+    if result is not None and "eval_seed" in result and record.get("eval_seed") != result["eval_seed"]:
+        return f"was measured with eval seed {record.get('eval_seed')!r}, the run's result.json says {result['eval_seed']!r}"
+    return None
+
+
+def _record_problem(path: Path, result: Mapping[str, Any] | None) -> tuple[dict[str, Any] | None, str | None]:
+    """The record at ``path`` (None when it cannot be read) and why it cannot stand for its run (None: it can)."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        return None, f"cannot be read ({error})"
+    if not text.strip():
+        return None, "is empty"
+    try:
+        record = json.loads(text)
+    except json.JSONDecodeError as error:
+        return None, f"is not valid JSON ({error})"
+    problem = remeasured_record_problem(path, record, result)
+    return (record if problem is None else None), problem
+
+
+def read_remeasured(
+    folder: str | Path, result: Mapping[str, Any] | None = None, file_name: str = MERGE_REMEASURE.file_name
+) -> dict[str, Any] | None:
+    """
+    The run's re-measured record (``meta_test_large.json``), or None: none in the folder, or one that cannot stand for
+    the run (:func:`remeasured_record_problem`: empty, unparsable, without summary, another run's, another eval seed),
+    which is skipped with a warning naming the file; the run then counts as not re-measured.
+
+    :param folder: the run folder
+    :param result: the run's ``result.json`` (its eval seed must be the record's), if the caller has read it
+    :param file_name: the record's file name
+    :return: the record, or None
+    """
+    path = Path(folder, file_name)
+    if not path.is_file():
+        return None
+    record, problem = _record_problem(path, result)
+    if problem is not None:
+        warnings.warn(
+            f"{path} {problem}: skipped, the run counts as not re-measured (`python -m sb3_pearl.reproduce remeasure` "
+            "measures it again)",
+            stacklevel=2,
+        )
+        return None
+    return record
+
+
+def remeasure_run(
+    folder: Path, config: RemeasureConfig, force: bool = False, echo: Callable[[str], None] = print
+) -> Path | None:
     """
     Remeasure the finished run in ``folder`` (``result.json`` present) unless its record exists (``force``: again).
+
+    A record that is empty, unparsable or not the run's (:func:`remeasured_record_problem`) does not count: the run is
+    measured again, and ``echo`` says why.
 
     :param folder: the run folder
     :param config: the design
     :param force: measure again when the record exists
+    :param echo: progress output
     :return: the record written, or None (no finished run, or already measured)
     """
     from sb3_pearl.experiments import get_experiment
     from sb3_pearl.registry import algorithm_class
 
     out = folder / config.file_name
-    if not (folder / RESULT_FILE).is_file() or (out.is_file() and not force):
+    if not (folder / RESULT_FILE).is_file():
         return None
     result = read_run_result(folder / RESULT_FILE)  # refused if it is not the result of its folder's run
+    if out.is_file() and not force:
+        _, problem = _record_problem(out, result)
+        if problem is None:
+            return None
+        echo(f"{out} {problem}: measuring it again")
     experiment = get_experiment(result["experiment"])
     family = experiment.family(result["family"])
     algo = experiment.variant(result["variant"]).algo
@@ -178,7 +284,7 @@ def remeasure_experiments(
         try:
             with run_lock(folder, wait_s=0.0):
                 start = time.time()
-                out = remeasure_run(folder, config, force)
+                out = remeasure_run(folder, config, force, echo)
         except RunLockedError as error:
             echo(f"skip {folder}: {error}")
             continue

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.evaluation.meta_test import PAPER_KS
 from sb3_pearl.experiments import EXPERIMENTS
 from sb3_pearl.experiments.spec import VIOLATION_MARGIN, Claim, Experiment, resolve_k
@@ -463,7 +464,8 @@ def write_report(results_dir: str | os.PathLike[str], out: str | os.PathLike[str
     Rebuild the generated part of ``out`` (and its figures in ``figures/`` beside it) from ``results_dir``.
 
     :param results_dir: root of the results layout
-    :param out: the markdown file (created if missing; its text outside the markers is kept)
+    :param out: the markdown file (created if missing; its text outside the markers is kept), written atomically (a
+        temporary file in its folder, then renamed over it)
     :return: the path written
     """
     root = Path(results_dir)
@@ -479,5 +481,6 @@ def write_report(results_dir: str | os.PathLike[str], out: str | os.PathLike[str
     figures_dir.mkdir(parents=True, exist_ok=True)
     generated = build_report(results_dir, figures_dir, "figures")
     document = out.read_text() if out.is_file() else "# Results\n"
-    out.write_text(splice(document, generated))
+    with atomic_write(out, "w") as file:  # a write cut half-way leaves the previous file whole
+        file.write(splice(document, generated))
     return out

@@ -11,7 +11,6 @@ beside them.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from sb3_pearl.experiments import get_experiment
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
 from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
+from sb3_pearl.reproduce.remeasure import read_remeasured as read_remeasured_record
 from sb3_pearl.reproduce.stats import Interval, paired_differences, sign_flip_interval, t_interval
 
 PAPER_KS = (0, 1, 3, 5)
@@ -88,11 +88,10 @@ def load_run(folder: Path, read_remeasured: bool) -> RunNumbers | None:
     own = _by_k(result["meta_test"]["summary"])
     summary = own
     if read_remeasured:
-        large = folder / MERGE_REMEASURE.file_name
-        if not large.is_file():
+        record = read_remeasured_record(folder, result)  # None: missing, empty, or another run's (warned)
+        if record is None:
             return None
-        with open(large) as file:
-            summary = _by_k(json.load(file)["summary"])
+        summary = _by_k(record["summary"])
     shift = result.get("shift")
     return RunNumbers(
         seed=int(result["seed"]),

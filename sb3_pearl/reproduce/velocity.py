@@ -62,7 +62,7 @@ def geometric_median(points: np.ndarray, iterations: int = 500, tolerance: float
     return estimate
 
 
-def constant_references(targets: np.ndarray) -> dict[str, float]:
+def constant_references(targets: np.ndarray) -> dict[str, Any]:
     """
     The two task-independent references of the rules on held-out targets.
 
@@ -197,7 +197,7 @@ class FamilyCompetence:
     """The competence verdicts of one family: the oracle's, and each meta-learner's against it."""
 
     family: str
-    references: dict[str, float]
+    references: dict[str, Any]
     runs: dict[str, list[RunVelocity]] = field(default_factory=dict)
     learnable: str = "pending"
     competent: dict[str, str] = field(default_factory=dict)

@@ -18,8 +18,10 @@ The zoo special key ``meta_test`` (a dict, optional) sets the meta-tests: ``n_ad
 (1), ``n_tasks`` (None: as many as the model's ``n_test_tasks``), ``deterministic`` (True) and ``eval_seed`` (10000,
 the seed of the held-out tasks drawn from the eval env and of the common random numbers:
 :mod:`sb3_pearl.evaluation.held_out`, the same meta-test as the harness's); e.g.
-``-params meta_test:"dict(n_adapt=3)"``. A string value is parsed with
-:func:`~sb3_pearl.zoo.safe_config.parse_dict_string` (literals only, never ``eval``).
+``-params meta_test:"dict(n_adapt=3)"``, which sets those keys over the YAML entry's (or budget preset's) ``meta_test``
+and keeps its others. A string value is parsed with :func:`~sb3_pearl.zoo.safe_config.parse_dict_string` (literals
+only, never ``eval``). Every value is checked before anything is built
+(:func:`~sb3_pearl.evaluation.held_out.check_meta_test_settings`): one out of range is a one-line error.
 """
 
 from __future__ import annotations
@@ -47,11 +49,11 @@ from sb3_pearl.common.checks import check_learning_rate
 from sb3_pearl.common.threads import mark_num_threads_explicit, num_threads_flag
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
-from sb3_pearl.evaluation.held_out import model_test_tasks, write_meta_test
+from sb3_pearl.evaluation.held_out import check_meta_test_settings, model_test_tasks, write_meta_test
 from sb3_pearl.experiments.budgets import model_kwargs
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
-from sb3_pearl.zoo.flags import PROJECT_FLAGS_HELP, parse_project_flags
+from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags
 from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager
 from sb3_pearl.zoo.meta_testing import SHORT_RUN_FRACTION, ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
@@ -112,11 +114,13 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         resume: bool = False,
         budget: str | None = None,
         command: Sequence[str] = (),
+        checkpoint_minutes: float = DEFAULT_CHECKPOINT_MINUTES,
         **kwargs: Any,
     ) -> None:
         if kwargs.get("config") is None and os.path.isfile(default_config(algo)):
             kwargs["config"] = default_config(algo)  # else rl_zoo3's own file (its algorithms)
         self.resume, self.budget, self.command = resume, budget, list(command)
+        self.checkpoint_minutes = checkpoint_minutes
         super().__init__(args, algo, env_id, log_folder, *posargs, **kwargs)
         self.meta_test_kwargs = dict(ZOO_META_TEST_DEFAULTS)
         self.adaptive = has_adaptation_api(ALGOS[algo])
@@ -124,19 +128,36 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             raise ImportError("-tb/--tensorboard-log needs the tensorboard package (not installed): pip install tensorboard")
 
     def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
-        if self.budget is not None:
-            hyperparams, saved_hyperparams = self._read_budget(self.budget)
-        else:
-            if not os.path.isfile(self.config) and self.config.endswith((".yml", ".yaml")):
-                raise UsageError(f"hyperparameter file {self.config} not found (expected zoo_hyperparams/{self.algo}.yml)")
-            if self.trial_id is not None:  # --trial-id 0 must load trial 0, not the YAML defaults
-                self.trial_id = OptunaTrialIndex(self.trial_id)
-            try:
-                hyperparams, saved_hyperparams = super().read_hyperparameters()
-            except ValueError as error:  # e.g. no entry for the env in the file
-                raise UsageError(str(error)) from error
+        # -params' meta_test sets its keys over the entry's meta_test (rl_zoo3 would replace the whole dict): it is kept
+        # out of rl_zoo3's update and merged here.
+        custom = self.custom_hyperparams
+        custom_meta = (custom or {}).get("meta_test")
+        if custom is not None and custom_meta is not None:
+            self.custom_hyperparams = {key: value for key, value in custom.items() if key != "meta_test"}
+        try:
+            hyperparams, saved_hyperparams = self._read_entry()
+        finally:
+            self.custom_hyperparams = custom
+        if custom_meta is not None:
+            entry_meta = meta_test_dict(hyperparams.get("meta_test"), f"{self.config} [{self.env_name.gym_id}]")
+            hyperparams["meta_test"] = {**entry_meta, **meta_test_dict(custom_meta, "-params")}
+            saved_hyperparams = OrderedDict((key, hyperparams[key]) for key in sorted(hyperparams))
+            print(f"meta_test (the entry's, with -params' keys over it): {hyperparams['meta_test']}")
         self.check_hyperparameters(hyperparams)
         return hyperparams, saved_hyperparams
+
+    def _read_entry(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """rl_zoo3's ``read_hyperparameters`` (the YAML entry, or a budget preset's), with ``-params`` over it."""
+        if self.budget is not None:
+            return self._read_budget(self.budget)
+        if not os.path.isfile(self.config) and self.config.endswith((".yml", ".yaml")):
+            raise UsageError(f"hyperparameter file {self.config} not found (expected zoo_hyperparams/{self.algo}.yml)")
+        if self.trial_id is not None:  # --trial-id 0 must load trial 0, not the YAML defaults
+            self.trial_id = OptunaTrialIndex(self.trial_id)
+        try:
+            return super().read_hyperparameters()
+        except ValueError as error:  # e.g. no entry for the env in the file
+            raise UsageError(str(error)) from error
 
     def _read_budget(self, preset: str) -> tuple[dict[str, Any], dict[str, Any]]:
         """rl_zoo3's ``read_hyperparameters`` with the entry of a budget preset instead of the YAML file's."""
@@ -172,14 +193,11 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
                 f"(the accepted ones: help({algo_class.__name__}) and the zoo keys of docs/cli.md)"
             )
         self._check_learning_rate(hyperparams.get("learning_rate"))
-        meta = hyperparams.get("meta_test") or {}
-        if isinstance(meta, str):  # the zoo's convention for dict values given as strings, parsed without eval()
-            meta = parse_dict_string(meta, "meta_test")
-        if not isinstance(meta, dict) or set(meta) - set(ZOO_META_TEST_DEFAULTS):
-            raise UsageError(f"meta_test must be a dict with keys among {sorted(ZOO_META_TEST_DEFAULTS)}, got {meta!r}")
-        eval_seed = meta.get("eval_seed", 0)
-        if isinstance(eval_seed, bool) or not isinstance(eval_seed, int) or eval_seed < 0:
-            raise UsageError(f"meta_test eval_seed must be an integer >= 0 (the seed of the test tasks), got {eval_seed!r}")
+        where = "-params" if "meta_test" in (self.custom_hyperparams or {}) else f"{self.config} [{self.env_name.gym_id}]"
+        try:
+            check_meta_test_settings(meta_test_dict(hyperparams.get("meta_test"), where))
+        except ValueError as error:
+            raise UsageError(f"{error} (in {where})") from None
 
     def _check_learning_rate(self, learning_rate: Any) -> None:
         """
@@ -202,18 +220,14 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
                 raise UsageError(f"{error} (in {where})") from None
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
-        meta = hyperparams.pop("meta_test", None) or {}
-        if isinstance(meta, str):
-            meta = parse_dict_string(meta, "meta_test")
-        self.meta_test_kwargs.update(meta)
+        self.meta_test_kwargs.update(meta_test_dict(hyperparams.pop("meta_test", None), "meta_test"))
         # A short run (-n under a tenth of the entry's n_timesteps: a smoke run of the pipeline) meta-tests on a few
         # tasks and one draw (meta_test_settings), so that it costs what it trains, unless -params sets them. With -i
         # (not --resume), -n counts the steps added to a trained model: never a short run.
         entry_steps = float(hyperparams.get("n_timesteps") or 0)
         added_to_a_trained_model = self.continue_training and not self.resume
         self.short_run = not added_to_a_trained_model and 0 < self.n_timesteps * SHORT_RUN_FRACTION < entry_steps
-        chosen = (self.custom_hyperparams or {}).get("meta_test") or {}
-        self.meta_test_chosen = set(parse_dict_string(chosen, "meta_test") if isinstance(chosen, str) else chosen)
+        self.meta_test_chosen = set(meta_test_dict((self.custom_hyperparams or {}).get("meta_test"), "-params"))
         # A budget preset's policy_kwargs arrive as the preset's plain dict (activation by name, as config.yml saves
         # them); the harness's own conversion makes them constructor kwargs. A zoo YAML's string form is rl_zoo3's.
         return super()._preprocess_hyperparams(model_kwargs(hyperparams))
@@ -289,6 +303,30 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             self.final_meta_test(model)
 
 
+def meta_test_dict(value: Any, where: str) -> dict[str, Any]:
+    """
+    The zoo key ``meta_test`` as a dict: None is empty, a string is parsed without ``eval``
+    (:func:`~sb3_pearl.zoo.safe_config.parse_dict_string`); anything else than a dict of the known keys is a
+    :class:`~sb3_pearl.zoo.usage.UsageError`.
+
+    :param value: the key's value (YAML entry, budget preset or ``-params``)
+    :param where: where it was given, for the message
+    :return: the dict (a copy)
+    """
+    if value is None:
+        return {}
+    if isinstance(value, str):  # the zoo's convention for dict values given as strings, parsed without eval()
+        try:
+            value = parse_dict_string(value, "meta_test")
+        except ValueError as error:
+            raise UsageError(f"{error} (in {where})") from None
+    if not isinstance(value, dict) or set(value) - set(ZOO_META_TEST_DEFAULTS):
+        raise UsageError(
+            f"meta_test must be a dict with keys among {sorted(ZOO_META_TEST_DEFAULTS)}, got {value!r} (in {where})"
+        )
+    return dict(value)
+
+
 def env_kwargs_error(env_id: str, error: TypeError) -> str:
     """
     The one-line message for an ``--env-kwargs`` (or YAML ``env_kwargs``) key the env's constructor does not take.
@@ -352,7 +390,13 @@ def train(argv: Sequence[str] | None = None) -> None:
         flags = parse_project_flags(list(sys.argv[1:] if argv is None else argv))
         if num_threads_flag(flags.zoo_args) > 0:  # rl_zoo3 sets it; learn() must not replace it with the default
             mark_num_threads_explicit()
-        manager = functools.partial(MetaExperimentManager, resume=flags.resume, budget=flags.budget, command=flags.command)
+        manager = functools.partial(
+            MetaExperimentManager,
+            resume=flags.resume,
+            budget=flags.budget,
+            command=flags.command,
+            checkpoint_minutes=flags.checkpoint_minutes,
+        )
         try:
             run_zoo_train(flags.zoo_args, manager, CheckedStoreDict)  # CheckedStoreDict: a bad -params value is one line
         except SystemExit:

@@ -1,10 +1,12 @@
-"""``train.py``'s own flags, on top of rl_zoo3's: ``--budget PRESET`` and ``--resume CHECKPOINT``, plus the checks of
+"""``train.py``'s own flags, on top of rl_zoo3's: ``--budget PRESET``, ``--resume CHECKPOINT`` and
+``--checkpoint-minutes M``, plus the checks of
 ``--env`` and ``-n`` before rl_zoo3 parses anything (docs/cli.md)."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import os
 from typing import NamedTuple
 
@@ -22,7 +24,13 @@ sb3-pearl flags (docs/cli.md):
                         replay buffer and RNG states
   --resume-without-buffer
                         let --resume go on when the checkpoint has no replay buffer beside it (the run then
-                        restarts from an empty buffer and differs from an uninterrupted one)"""
+                        restarts from an empty buffer and differs from an uninterrupted one)
+  --checkpoint-minutes M
+                        save a resumable checkpoint (checkpoint_<steps>_steps*.zip and its replay buffer, atomic,
+                        the previous one deleted) every M minutes of training, at the next gradient step or
+                        iteration start (default 10; 0: off): a kill loses at most M minutes"""
+
+DEFAULT_CHECKPOINT_MINUTES = 10.0
 
 
 class ProjectFlags(NamedTuple):
@@ -32,6 +40,7 @@ class ProjectFlags(NamedTuple):
     command: list[str]  # the command line as given (the resume command of a cut run is made from it)
     resume: bool  # --resume: -i continues the checkpoint's run (counters kept) up to n_timesteps in all
     budget: str | None  # --budget PRESET: the family's entry of that budget preset replaces the YAML entry
+    checkpoint_minutes: float = DEFAULT_CHECKPOINT_MINUTES  # --checkpoint-minutes M: periodic checkpoints (0: off)
 
 
 def parse_project_flags(args: list[str]) -> ProjectFlags:
@@ -81,7 +90,18 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
         budget = known.budget
     if resume and not without_buffer:
         check_resume_buffer(args[args.index("--trained-agent") + 1], known.algo)
-    return ProjectFlags(args, command, resume, budget)
+    checkpoint_minutes = DEFAULT_CHECKPOINT_MINUTES
+    if "--checkpoint-minutes" in args:
+        index = args.index("--checkpoint-minutes")
+        value = args[index + 1] if index + 1 < len(args) else ""
+        try:
+            checkpoint_minutes = float(value)
+        except ValueError:
+            checkpoint_minutes = math.nan
+        if not (math.isfinite(checkpoint_minutes) and checkpoint_minutes >= 0):
+            raise UsageError(f"--checkpoint-minutes takes minutes >= 0 (0: no periodic checkpoint), got {value!r}")
+        del args[index : index + 2]
+    return ProjectFlags(args, command, resume, budget, checkpoint_minutes)
 
 
 def check_resume_buffer(checkpoint: str, algo: str | None) -> None:
@@ -106,4 +126,4 @@ def check_resume_buffer(checkpoint: str, algo: str | None) -> None:
         )
 
 
-__all__ = ["PROJECT_FLAGS_HELP", "ProjectFlags", "check_resume_buffer", "parse_project_flags"]
+__all__ = ["DEFAULT_CHECKPOINT_MINUTES", "PROJECT_FLAGS_HELP", "ProjectFlags", "check_resume_buffer", "parse_project_flags"]

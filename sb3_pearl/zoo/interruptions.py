@@ -41,7 +41,9 @@ class StopOnSignalCallback(BaseCallback):
     Stops training, once :attr:`requested`, where the state is one a checkpoint holds, so the saved model resumes
     exactly: at the next rollout start (PEARL and MAML call it at an iteration start, before the iteration's draws;
     Fine-Tune and SB3's algorithms before each collection), or, for PEARL / PEARL+, at the next env step (the
-    iteration is kept open, ``model._open_iteration``, and finished by the resumed run).
+    iteration is kept open, ``model._open_iteration``, and finished by the resumed run) or the next gradient step (the
+    iteration's steps still to train are saved with the model and trained first by the resumed run). A stop therefore
+    lands within one gradient step or env step at any budget: seconds, within every scheduler's grace period.
     """
 
     def __init__(self) -> None:
@@ -51,6 +53,13 @@ class StopOnSignalCallback(BaseCallback):
 
     def _on_step(self) -> bool:
         if self.requested and hasattr(self.model, "_open_iteration"):
+            self.stopped = True
+            return False
+        return True
+
+    def on_gradient_step(self) -> bool:
+        """Between two of PEARL's gradient steps (:func:`~sb3_pearl.common.callbacks.gradient_step_event`): stop there."""
+        if self.requested:
             self.stopped = True
             return False
         return True
@@ -112,9 +121,12 @@ class InterruptibleExperimentManager(ExperimentManager):
             kwargs["log_interval"] = None
         if self.callbacks:
             kwargs["callback"] = self.callbacks
+        pending = int(getattr(model, "_pending_gradient_steps", 0))
+        if pending > 0:
+            print(f"First the {pending:,} gradient steps of the iteration the stop interrupted", flush=True)
         try:
-            if remaining > 0:
-                model.learn(remaining, reset_num_timesteps=False, **kwargs)
+            if remaining > 0 or pending > 0:
+                model.learn(max(remaining, 0), reset_num_timesteps=False, **kwargs)
         except KeyboardInterrupt:
             pass  # as rl_zoo3: the model is saved by save_trained_model
         finally:
@@ -143,7 +155,8 @@ class InterruptibleExperimentManager(ExperimentManager):
         if self._phase == "training" and first:
             self._stop_callback.requested = True
             print(
-                f"Received {name}: stopping training where it resumes exactly (the next iteration start or env step), "
+                f"Received {name}: stopping training where it resumes exactly (the next gradient step, env step or "
+                "iteration start), "
                 f"then saving the model and its replay buffer; {name} again stops at once (the resume is then not "
                 "exact), SIGKILL stops without saving",
                 flush=True,
@@ -231,8 +244,13 @@ class InterruptibleExperimentManager(ExperimentManager):
             json.dump(record, file, indent=1)
         if in_training:
             how = "exactly" if exact else "approximately (stopped at once: not where an exact resume is possible)"
+            pending = int(getattr(model, "_pending_gradient_steps", 0))
+            trained = f", {int(getattr(model, '_n_updates', 0)):,} gradient steps trained"
+            if pending > 0:
+                trained += f" ({pending:,} of the current iteration's still to train, first thing on resume)"
             print(
-                f"Stopped by {self._stop_signal} at {model.num_timesteps} of {self.n_timesteps} timesteps: the run is cut "
+                f"Stopped by {self._stop_signal} at {model.num_timesteps} of {self.n_timesteps} timesteps{trained}: the run "
+                "is cut "
                 f"(final meta-test skipped, {INTERRUPTED_FILE} written); the model is saved to {self._model_path()}"
                 + (f" with its replay buffer {buffer_path}" if buffer_path else "")
                 + f". It resumes {how} with: {resume}",

@@ -92,6 +92,13 @@ class MetaTestExperimentManager(ExperimentManager):
             else cb
             for cb in self.callbacks
         ]
+        minutes = float(getattr(self, "checkpoint_minutes", 0.0))
+        if minutes > 0 and not self.optimize_hyperparameters:  # --checkpoint-minutes: a kill loses at most that much
+            self.callbacks.append(
+                ResumableCheckpointCallback(
+                    0, self.save_path, "checkpoint", self.verbose, every_s=60 * minutes, keep_last=True
+                )
+            )
         if self.eval_freq > 0 and not self.optimize_hyperparameters:
             self.eval_freq = max(self.eval_freq // self.n_envs, 1)
             if self.verbose > 0:

@@ -1,5 +1,8 @@
 """Checks that a saved model fits the env it is about to be used with (``train.py -i`` / ``--resume``, ``enjoy.py``).
 
+The run folder's ``args.yml`` names the env a model was trained on; without one, the model's own record tells its task
+family (:func:`check_model_family`). Spaces are checked too (:func:`check_model_spaces`).
+
 Both raise :class:`~sb3_pearl.zoo.usage.UsageError` (one line, exit status 2) instead of a shape error deep in torch.
 """
 
@@ -11,6 +14,7 @@ from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_pearl.common.tasks import task_family_problem
 from sb3_pearl.zoo.safe_config import load_run_yaml
 from sb3_pearl.zoo.usage import UsageError
 
@@ -54,4 +58,29 @@ def check_model_spaces(model: BaseAlgorithm, env: Any, model_path: str, env_id: 
             raise UsageError(f"{model_path} was saved for another env: its {kind} is {model_space}, {env_id} has {env_space}")
 
 
-__all__ = ["check_model_env", "check_model_spaces"]
+def check_model_family(model: BaseAlgorithm, env: Any, model_path: str, env_id: str) -> None:
+    """
+    Raise a clear error (:class:`~sb3_pearl.zoo.usage.UsageError`) if the model was trained on another task family than
+    the env's: the family the model recorded (``task_family``), else its training tasks checked with the env's
+    ``task_error`` (a zip saved before the family was recorded). Two families can share their spaces (PointGoal and
+    SafePointGoal, Walker2d and HalfCheetah), and a run folder without ``args.yml`` does not name its env.
+
+    :param model: the loaded model
+    :param env: the env (a gymnasium env, possibly wrapped)
+    :param model_path: for the message
+    :param env_id: for the message
+    """
+    base = getattr(env, "unwrapped", env)
+    family = base.task_family() if callable(getattr(base, "task_family", None)) else None
+    task_error = getattr(base, "task_error", None)
+    problem = task_family_problem(
+        getattr(model, "task_family", None),
+        list(getattr(model, "train_tasks", None) or []),
+        family,
+        task_error if callable(task_error) else None,
+    )
+    if problem is not None:
+        raise UsageError(f"{model_path} was not trained on {env_id}: {problem}; pass the --env it was trained on")
+
+
+__all__ = ["check_model_env", "check_model_family", "check_model_spaces"]

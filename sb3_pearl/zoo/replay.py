@@ -27,7 +27,7 @@ from sb3_pearl.common.threads import apply_default_num_threads, mark_num_threads
 from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult
 from sb3_pearl.evaluation.statistics import format_prior_posterior_table
-from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
+from sb3_pearl.zoo.model_checks import check_model_env, check_model_family, check_model_spaces
 from sb3_pearl.zoo.registry import register_algos
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, create_test_env, get_model_path
 from sb3_pearl.zoo.safe_config import UnsafeConfigError, get_saved_hyperparams, load_run_yaml
@@ -241,6 +241,7 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
         raise UsageError(str(error)) from None
     apply_default_num_threads(model.policy)  # the fastest count for its networks, unless --num-threads chose one
     check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
+    check_model_family(model, env, model_path, env_id)  # a UsageError: trained on another family (no args.yml needed)
     try:
         tasks = model_test_tasks(model, env, args.n_tasks, eval_seed, model_path)
     except ValueError as error:  # the draw hits training tasks (few distinct tasks in the family)

@@ -15,6 +15,7 @@ from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.road import LaneIndex
 from highway_env.vehicle.objects import Obstacle
 
+from sb3_pearl.envs.checks import check_count, check_number, check_pair_range
 from sb3_pearl.envs.highway_merge.actions import ACCELERATE, CRUISE, DECELERATE, LANE_LEFT
 from sb3_pearl.envs.highway_merge.ego import MergeEgoVehicle
 from sb3_pearl.envs.highway_merge.geometry import (
@@ -110,17 +111,17 @@ class HighwayMergeMetaEnv(MetaTaskEnv, AbstractEnv):
         normalize_obs: bool = True,
         render_mode: str | None = None,
     ) -> None:
-        for name, (low, high) in (("density_range", density_range), ("speed_range", speed_range)):
-            if not 0 < low <= high:
-                raise ValueError(f"{name} must satisfy 0 < low <= high, got {(low, high)}")
-        if not 0 <= ego_speed_range[0] <= ego_speed_range[1]:
-            raise ValueError(f"ego_speed_range must satisfy 0 <= low <= high, got {ego_speed_range}")
-        if horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {horizon}")
-        if policy_frequency <= 0 or simulation_frequency <= 0 or simulation_frequency % policy_frequency:
+        density_range = check_pair_range("density_range", density_range, min_open=True)
+        speed_range = check_pair_range("speed_range", speed_range, min_open=True)
+        ego_speed_range = check_pair_range("ego_speed_range", ego_speed_range)
+        check_count("horizon", horizon, 1, hint="episode length in policy steps")
+        check_count("simulation_frequency", simulation_frequency, 1, hint="Hz")
+        check_count("policy_frequency", policy_frequency, 1, hint="Hz")
+        if simulation_frequency % policy_frequency:
             raise ValueError(
-                f"policy_frequency ({policy_frequency}) must be > 0 and divide simulation_frequency ({simulation_frequency})"
+                f"policy_frequency ({policy_frequency}) must divide simulation_frequency ({simulation_frequency})"
             )
+        check_number("ego_start", ego_start, hint="initial ego x on the ramp [m]")
         if not RAMP_START <= ego_start < MERGE_START:
             raise ValueError(
                 f"ego_start must be on the ramp before the merge lane, in [{RAMP_START}, {MERGE_START}), got {ego_start}"
@@ -134,12 +135,17 @@ class HighwayMergeMetaEnv(MetaTaskEnv, AbstractEnv):
             collision_penalty=collision_penalty,
             accel_cost=accel_cost,
             lane_change_cost=lane_change_cost,
-            spawn_jitter=spawn_jitter,
-            speed_jitter=speed_jitter,
+            jam_gap=jam_gap,
+            hidas_g_min=hidas_g_min,
+            hidas_c=hidas_c,
         )
         for name, value in weights.items():
-            if value < 0:
-                raise ValueError(f"{name} must be >= 0, got {value}")
+            check_number(name, value, 0.0)
+        for name, value in (("spawn_jitter", spawn_jitter), ("speed_jitter", speed_jitter)):
+            check_number(name, value, 0.0, 1.0, high_open=True, hint="relative jitter")
+        check_number("desired_speed_ratio", desired_speed_ratio, 1.0, low_open=True, hint="IDM desired speed / task speed")
+        for name, value in (("hidas_dv", hidas_dv), ("hidas_b_f", hidas_b_f)):
+            check_number(name, value, 0.0, low_open=True)
         if render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
         self.density_range = (float(density_range[0]), float(density_range[1]))
