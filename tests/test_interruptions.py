@@ -199,3 +199,31 @@ def test_a_part_filled_sac_buffer_is_saved_compact_and_loads_to_the_same_rows(tm
     for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
         np.testing.assert_array_equal(getattr(buffer, name), getattr(full, name))
     assert full.observations.shape[0] == 100_000  # the model's own buffer was left whole by the save
+
+
+def test_an_older_checkpoint_is_compacted_in_place_and_loads_the_same_buffer(tmp_path: Path) -> None:
+    """`reproduce compact`: a checkpoint written with the whole allocation (before compact buffers) is rewritten with
+    the filled rows only; the state names the new parts, the old ones are gone, and loading it gives the same buffer."""
+    import pickle
+
+    from sb3_pearl import FineTune
+    from sb3_pearl.reproduce.checkpoint import PART_BYTES, RunCheckpoint
+
+    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
+    model = FineTune("MlpPolicy", NOISY_ENV, buffer_size=200_000, **kwargs).learn(150)
+    checkpoint = RunCheckpoint(tmp_path)
+    files = checkpoint.save_model(model, None)
+    whole = pickle.dumps(model.replay_buffer)  # as an older save wrote it: every allocated row
+    assert len(whole) > PART_BYTES / 10
+    files = {key: name for key, name in files.items() if not key.startswith("replay")}
+    files.update(checkpoint._write_parts("replay_150.pkl", whole, "replay"))
+    checkpoint.write_state({"phase": "train", "files": files, "num_timesteps": 150})
+    before, after = checkpoint.compact_replay()
+    assert before == len(whole) and after < before / 20
+    state = checkpoint.read_state()
+    assert state is not None and "replay_150.pkl" not in state["files"].values()
+    assert not (checkpoint.folder / "replay_150.pkl").exists() and any(checkpoint.folder.glob("replay_150_compact*"))
+    resumed = checkpoint.load_model(state, FineTune, gym.make(NOISY_ENV))
+    for name in ("observations", "actions", "rewards", "dones"):
+        np.testing.assert_array_equal(getattr(resumed.replay_buffer, name), getattr(model.replay_buffer, name))
+    assert checkpoint.compact_replay()[0] == checkpoint.compact_replay()[1]  # compact already: nothing to do

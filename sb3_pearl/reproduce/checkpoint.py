@@ -33,6 +33,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import pickle
 import shutil
 import time
 import warnings
@@ -45,6 +46,7 @@ from stable_baselines3.common.logger import CSVOutputFormat, Logger
 
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.env_state import EnvStateError
+from sb3_pearl.common.persistence import compact_buffer
 
 CHECKPOINT_DIR = "checkpoint"
 STATE_FILE = "state.json"
@@ -153,6 +155,35 @@ class RunCheckpoint:
             chunks.append((self.folder / files[f"{key}.part{i}"]).read_bytes())
             i += 1
         return b"".join(chunks)
+
+    def compact_replay(self) -> tuple[int, int]:
+        """
+        Rewrite the replay buffer of the checkpoint in force with only its filled rows
+        (:func:`~sb3_pearl.common.persistence.compact_buffer`; what ``save_replay_buffer`` writes since it does so), so
+        that an older part-way checkpoint can be committed. The new parts are written, then the state naming them,
+        then the old parts are deleted: a kill at any moment leaves one complete checkpoint.
+
+        :return: the buffer's bytes before and after (equal when there was nothing to compact)
+        """
+        state = self.read_state()
+        files = dict((state or {}).get("files") or {})
+        if state is None or not any(key == "replay" or key.startswith("replay.part") for key in files):
+            return 0, 0
+        data = (self.folder / files["replay"]).read_bytes() if "replay" in files else self._joined(files, "replay")
+        buffer = pickle.loads(data)
+        compact = compact_buffer(buffer)
+        if compact is buffer:
+            return len(data), len(data)
+        packed = pickle.dumps(compact, protocol=pickle.HIGHEST_PROTOCOL)
+        old = {key: name for key, name in files.items() if key == "replay" or key.startswith("replay.part")}
+        name = FILE_NAMES["replay"].format(f"{int(state['num_timesteps'])}_compact")
+        kept = {key: value for key, value in files.items() if key not in old}
+        state["files"] = {**kept, **self._write_parts(name, packed, "replay")}
+        self.write_state(state)
+        for stale in old.values():
+            if stale not in state["files"].values():
+                (self.folder / stale).unlink(missing_ok=True)
+        return len(data), len(packed)
 
     def size_bytes(self, state: dict[str, Any]) -> int:
         """The bytes on disk of the files the state names, with the state itself: what committing the checkpoint adds."""

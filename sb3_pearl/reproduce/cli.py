@@ -16,6 +16,7 @@ import argparse
 import os
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from sb3_pearl.common.checks import output_folder_problem, positive_int
@@ -133,6 +134,12 @@ def build_parser() -> argparse.ArgumentParser:
     velocity.add_argument("--seeds", default=None, help="model seeds: 0-3, 0,2,5 (default: each experiment's)")
     velocity.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
     velocity.add_argument("--force", action="store_true", help="measure runs that already have the record")
+
+    compact = sub.add_parser(
+        "compact",
+        help="rewrite the replay buffer of part-way runs' checkpoints with only its filled rows (to commit them)",
+    )
+    compact.add_argument("runs", nargs="+", help="run folders (results/<experiment>/<family>/<variant>/seed<N>)")
 
     one = sub.add_parser("run-one", help=argparse.SUPPRESS)  # what each child process of `run` executes
     one.add_argument("--experiment", required=True)
@@ -296,6 +303,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             chosen = parse_seeds(args.seeds) if args.seeds is not None else None
             written = remeasure_experiments(args.results_dir, names, MERGE_REMEASURE, chosen, args.force)
             print(f"{len(written)} run(s) remeasured")
+            return 0
+        if args.command == "compact":
+            from sb3_pearl.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
+            from sb3_pearl.reproduce.ownership import run_lock
+
+            for run in args.runs:
+                if not os.path.isdir(os.path.join(run, CHECKPOINT_DIR)):
+                    raise ValueError(f"{run} has no {CHECKPOINT_DIR}/ folder: give a part-way run's folder")
+                with run_lock(Path(run), wait_s=0.0):  # never under a run that is training
+                    before, after = RunCheckpoint(run).compact_replay()
+                print(f"{run}: replay buffer {before / 1e6:.0f} MB -> {after / 1e6:.0f} MB")
             return 0
         if args.command == "velocity":
             import torch as th
