@@ -17,9 +17,11 @@ import argparse
 import json
 import os
 import platform
+import queue
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -51,32 +53,40 @@ def main() -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     start = time.monotonic()
     child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT)
-    assert child.stdout is not None
     eta_at: float | None = None
     sent_at: float | None = None
-    lines: list[str] = []
-    os.set_blocking(child.stdout.fileno(), False)
-    buffer = ""
-    while child.poll() is None:
-        chunk = child.stdout.read() or ""
-        buffer += chunk
-        while "\n" in buffer:
-            line, buffer = buffer.split("\n", 1)
-            lines.append(line)
+    lines: queue.Queue[str] = queue.Queue()
+
+    def read_lines() -> None:
+        for line in child.stdout or []:
+            lines.put(line.rstrip("\n"))
+
+    threading.Thread(target=read_lines, daemon=True).start()
+    seen: list[str] = []
+    exited: float | None = None
+    while exited is None or not lines.empty():
+        if exited is None and child.poll() is not None:
+            exited = time.monotonic()
+        try:
+            line = lines.get(timeout=0.05)
+        except queue.Empty:
+            line = None
+        if line is not None:
+            seen.append(line)
             if eta_at is None and line.startswith("ETA of the whole run"):
                 eta_at = time.monotonic()
                 print(f"first ETA {eta_at - start:.0f} s after the start: {line}", flush=True)
-            if line.startswith(("So far:", "First iteration:", "Received", "Stopped by")):
-                print(f"  {line[:200]}", flush=True)
+            if line.startswith(("So far:", "First iteration:", "Received", "Stopped by", "Training:")):
+                print(f"  [{time.monotonic() - start:5.0f} s] {line[:220]}", flush=True)
         if eta_at is not None and sent_at is None and time.monotonic() - eta_at >= args.sigterm_after:
             child.send_signal(signal.SIGTERM)
             sent_at = time.monotonic()
             print(f"SIGTERM sent {sent_at - start:.0f} s after the start", flush=True)
-        time.sleep(0.05)
-    exited = time.monotonic()
-    lines += (buffer + (child.stdout.read() or "")).splitlines()
-    print(f"exit status {child.returncode}; {exited - sent_at:.1f} s from SIGTERM to exit" if sent_at else "no SIGTERM sent")
-    for line in lines:
+    if sent_at is not None and exited is not None:
+        print(f"exit status {child.returncode}; {exited - sent_at:.1f} s from SIGTERM to exit")
+    else:
+        print(f"exit status {child.returncode}; no SIGTERM sent (no ETA line)")
+    for line in seen:
         if line.startswith(("Stopped by", "Saving")):
             print(f"  {line[:300]}")
     for record in Path(args.folder).glob("pearlplus/AntVelMeta-v0_*/interrupted.json"):
