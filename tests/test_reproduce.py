@@ -480,6 +480,8 @@ def test_experiments_are_declared() -> None:
         "merge-confirm",
         "oracle",
         "oracle-merge",
+        "walker-columns",
+        "merge-columns",
     }
     confirm, table1_merge = get_experiment("merge-confirm"), get_experiment("merge-table1")
     # the confirmation is merge-table1's comparison on fresh seeds: same models, family, budget and held-out tasks

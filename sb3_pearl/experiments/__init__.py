@@ -24,6 +24,7 @@ from sb3_pearl.experiments.prior_critic import PRIOR_CRITIC, PRIOR_CRITIC_WALKER
 from sb3_pearl.experiments.safe_point import SAFE_POINT_EXPERIMENT
 from sb3_pearl.experiments.spec import Claim, Criterion, Experiment, Family, PaperCell, Variant, check_shared
 from sb3_pearl.experiments.table1 import TABLE1
+from sb3_pearl.experiments.table1_columns import MERGE_COLUMNS, WALKER_COLUMNS
 from sb3_pearl.experiments.table1_rules import WALKER_TABLE1
 from sb3_pearl.experiments.table2 import TABLE2
 from sb3_pearl.experiments.table3 import TABLE3
@@ -46,6 +47,8 @@ EXPERIMENTS: dict[str, Experiment] = {
         MERGE_CONFIRM,
         ORACLE,
         ORACLE_MERGE,
+        WALKER_COLUMNS,
+        MERGE_COLUMNS,
     )
 }
 for _experiment in EXPERIMENTS.values():
