@@ -22,6 +22,7 @@ from sb3_pearl.reproduce.table1_verdicts import (
     decide_confirmation,
     decide_family,
     decision_lines,
+    decision_section,
     reductions,
 )
 
@@ -220,3 +221,22 @@ def test_the_confirmation_is_decided_on_the_fresh_seeds_alone_and_pending_until_
     pooled = decide_confirmation(tmp_path, pooled=True)
     assert pooled.paired_seeds == list(range(20))
     assert pooled.prior_interval is not None and pooled.prior_interval.mean == pytest.approx(-0.045)
+
+
+def test_table1_shows_the_fine_tune_and_maml_columns_beside_the_paper(tmp_path: Path) -> None:
+    """Table I's four columns: Fine-Tune and MAML (merge-columns) from each run's own meta-test, with the t interval
+    over seeds of every cell, beside the paper's; "pending" before the runs; no rule reads them."""
+    (owner, name), (plus_owner, plus) = MERGE
+    for seed in range(2):
+        write_run(tmp_path, owner, "highway-merge", name, seed, summary(0.5, 0.5, -9), summary(0.10, 0.0, -7.6))
+        write_run(tmp_path, plus_owner, "highway-merge", plus, seed, summary(0.5, 0.5, -9), summary(0.02, 0.0, -7.6))
+    for seed, rate in ((0, 0.10), (1, 0.20)):
+        write_run(tmp_path, "merge-columns", "highway-merge", "finetune", seed, summary(rate, rate, -9.0))
+    decision = decide_family("highway-merge", tmp_path)
+    assert set(decision.columns) == {"finetune", "maml"} and set(decision.columns["finetune"]) == {0, 1}
+    assert decision.prior_verdict != "pending"  # the columns change nothing of the rules
+    rows = [line for line in decision_section([decision]) if "Fine-Tune" in line or "MAML" in line]
+    assert rows[0].startswith("| paper: Fine-Tune | 14.5 | 14.8 | 14.1 | 13.7 |")
+    # k = 0: 10% and 20% -> mean 15, sd 7.07, t(0.975, 1) = 12.71 -> half-width 63.5 points
+    assert rows[1].startswith("| ours: Fine-Tune (2 seeds) | 15.0 [-48.5, 78.5] | ")
+    assert rows[3] == "| ours: MAML | pending | pending | pending | pending | pending |"

@@ -65,6 +65,7 @@ class FamilyDecision:
     prior_flip: Interval | None = None
     adapted_flip: Interval | None = None
     title: str = ""
+    columns: dict[str, dict[int, RunNumbers]] = field(default_factory=dict)  # Fine-Tune and MAML (table1_columns)
     notes: list[str] = field(default_factory=list)
 
 
@@ -163,7 +164,32 @@ def decide_family(
     chosen = tuple(sorted(set(first) | set(extended)))
     runs = load_runs(experiment_name, family, names, chosen, results_dir)
     decision = FamilyDecision(family, experiment_name, names, tuple(first), runs, [])
+    decision.columns = load_columns(family, results_dir)
     return apply_rules(decision, rules, first, extended)
+
+
+def load_columns(family: str, results_dir: str | os.PathLike[str]) -> dict[str, dict[int, RunNumbers]]:
+    """
+    Table I's Fine-Tune and MAML columns on a decided family (:mod:`sb3_pearl.experiments.table1_columns`), from each
+    run's own meta-test (the rows' 20 held-out tasks x 10 prior draws); no rule reads them.
+
+    :param family: a decided family
+    :param results_dir: root of the results layout
+    :return: variant -> seed -> numbers (empty before the runs)
+    """
+    from sb3_pearl.experiments.table1_columns import MERGE_COLUMNS, WALKER_COLUMNS
+
+    experiment = next((e for e in (WALKER_COLUMNS, MERGE_COLUMNS) if e.families[0].name == family), None)
+    if experiment is None:
+        return {}
+    columns: dict[str, dict[int, RunNumbers]] = {}
+    for variant in experiment.variants:
+        columns[variant.name] = {}
+        for seed in experiment.seeds:
+            numbers = load_run(run_dir(results_dir, RunKey(experiment.name, family, variant.name, seed)), False)
+            if numbers is not None:
+                columns[variant.name][seed] = numbers
+    return columns
 
 
 def decide_confirmation(results_dir: str | os.PathLike[str], pooled: bool = False) -> FamilyDecision:
@@ -379,6 +405,21 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             if decision.family == "highway-merge":
                 old = " | ".join(_pct(_mean(runs, k, "violation_rate", own=True)) for k in PAPER_KS)
                 out.append(f"| ours, old meta-test (200 a k): {label} | {old} | {_num(_mean(runs, 5, 'return_mean', True))} |")
+        for name, runs in decision.columns.items():  # Table I's other columns: reported, no rule
+            paper = {cell.k: cell.value for cell in TABLE1.paper if cell.family == paper_family and cell.variant == name}
+            label = {"finetune": "Fine-Tune", "maml": "MAML"}.get(name, name)
+            out.append(f"| paper: {label} | " + " | ".join(_pct(paper.get(k, math.nan)) for k in PAPER_KS) + " | - |")
+            if not runs:
+                out.append(f"| ours: {label} | " + " | ".join("pending" for _ in PAPER_KS) + " | pending |")
+                continue
+            cells = []
+            for k in PAPER_KS:
+                rates = [run.summary[k]["violation_rate"] for run in runs.values() if k in run.summary]
+                cell = t_interval(rates)
+                cells.append(
+                    f"{_pct(cell.mean)} [{_pct(cell.low)}, {_pct(cell.high)}]" if len(rates) >= 2 else _pct(cell.mean)
+                )
+            out.append(f"| ours: {label} ({len(runs)} seeds) | {' | '.join(cells)} | {_num(_mean(runs, 5, 'return_mean'))} |")
         out += ["", "Per seed, k = 0 violation rate % [Wilson 95%] (old 200-trajectory meta-test where re-measured):", ""]
         out += ["| seed | " + " | ".join(experiment.variant(n).label for n in decision.variants) + " |", "|---|---|---|"]
         for seed in sorted(set(decision.runs[reference]) | set(decision.runs[variant])):
