@@ -415,9 +415,9 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             cells = []
             for k in PAPER_KS:
                 rates = [run.summary[k]["violation_rate"] for run in runs.values() if k in run.summary]
-                cell = t_interval(rates)
+                rate = t_interval(rates)
                 cells.append(
-                    f"{_pct(cell.mean)} [{_pct(cell.low)}, {_pct(cell.high)}]" if len(rates) >= 2 else _pct(cell.mean)
+                    f"{_pct(rate.mean)} [{_pct(rate.low)}, {_pct(rate.high)}]" if len(rates) >= 2 else _pct(rate.mean)
                 )
             out.append(f"| ours: {label} ({len(runs)} seeds) | {' | '.join(cells)} | {_num(_mean(runs, 5, 'return_mean'))} |")
         out += ["", "Per seed, k = 0 violation rate % [Wilson 95%] (old 200-trajectory meta-test where re-measured):", ""]
