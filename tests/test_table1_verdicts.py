@@ -196,6 +196,11 @@ def test_sign_flip_interval_by_hand() -> None:
     assert values.min() < interval.low < interval.mean < interval.high < values.max()
     mirrored = sign_flip_interval(-values)
     assert (mirrored.low, mirrored.high) == pytest.approx((-interval.high, -interval.low))
+    # above 16 values the patterns are drawn: the observed one counts too, so p > 0 even beyond every value
+    many = np.linspace(1.0, 2.0, 20)
+    assert 0 < sign_flip_p_value(many) <= 2 / 100_001 + 1e-12
+    drawn = sign_flip_interval(many)
+    assert 1.0 < drawn.low < drawn.mean < drawn.high < 2.0
     # the bounds are the test's: just inside them the shift is not rejected, just outside it is
     assert sign_flip_p_value(values, interval.high - 1e-6) > 0.05 >= sign_flip_p_value(values, interval.high + 1e-3)
 

@@ -462,7 +462,14 @@ def compact_buffer(buffer: Any) -> Any:
     :param buffer: the replay buffer
     :return: what to pickle
     """
-    if type(buffer) is not ReplayBuffer or buffer.full or buffer.pos >= buffer.buffer_size:
+    if (
+        type(buffer) is not ReplayBuffer
+        or buffer.full
+        or buffer.pos >= buffer.buffer_size
+        or buffer.optimize_memory_usage  # its next observations live in observations[pos]: keep the layout as it is
+        or hasattr(buffer, COMPACT_CAPACITY_ATTR)
+        or buffer.observations.shape[0] != buffer.buffer_size  # compact already
+    ):
         return buffer
     compact = copy.copy(buffer)
     for name in _ROW_ARRAYS:

@@ -275,6 +275,7 @@ class ResumableCheckpointCallback(CheckpointCallback):
         self._due = False
         model_path = self._checkpoint_path(extension="zip")
         if self._previous and model_path in self._previous:
+            self._last_save = time.monotonic()
             return  # nothing new since the last checkpoint (same step count, same gradient steps): keep it
         self.model.save(model_path)
         paths = [model_path]

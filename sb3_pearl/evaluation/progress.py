@@ -258,7 +258,8 @@ class TrainingProgressCallback(ProgressBarCallback):
         self.ended = True
         if hasattr(self.model, "gradient_step_callback"):
             self.model.gradient_step_callback = None
-        stopped = self.env_steps_done() < self.total_env_steps
+        pending = int(getattr(self.model, "_pending_gradient_steps", 0))  # an iteration's gradient steps cut short
+        stopped = self.env_steps_done() < self.total_env_steps or pending > 0
         if (
             self.verbose >= 1
             and stopped
@@ -268,7 +269,7 @@ class TrainingProgressCallback(ProgressBarCallback):
         ):
             print(f"Stopped at {self.model.num_timesteps:,} env steps, before the first gradient step: the model is untrained")
         if self.bar is not None:
-            self._draw(force=True, phase="done" if self.env_steps_done() >= self.total_env_steps else "stopped")
+            self._draw(force=True, phase="stopped" if stopped else "done")
             self.bar.close()
             self.bar = None
 

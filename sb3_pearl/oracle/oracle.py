@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 
 import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from stable_baselines3.sac.policies import SACPolicy
@@ -48,17 +49,9 @@ def with_task_observation(env: gym.Env | VecEnv) -> gym.Env | VecEnv:
             f"Oracle: the {type(env).__name__} given does not put the task in its observations; build its envs with "
             "wrapper_class=sb3_pearl.envs.task_observation.TaskObservation (make_vec_env) or pass a single env"
         )
-    if _is_wrapped(env):
+    if is_wrapped(env, TaskObservation):
         return env
     return TaskObservation(env)
-
-
-def _is_wrapped(env: gym.Env) -> bool:
-    while isinstance(env, gym.Wrapper):
-        if isinstance(env, TaskObservation):
-            return True
-        env = env.env
-    return False
 
 
 class Oracle(FineTune):

@@ -390,13 +390,22 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             targets += self.prior_critic_target.parameters()
         return sources, targets
 
+    def _count_gradient_step(self) -> None:
+        """One gradient step done: ``_n_updates``, and, inside ``learn()``, the iteration's steps still to train."""
+        self._n_updates += 1
+        if self._learn_callback is not None:  # a direct train() call leaves learn()'s bookkeeping alone
+            self._pending_gradient_steps = max(self._pending_gradient_steps - 1, 0)
+
     def train(self, gradient_steps: int, batch_size: int = 256) -> int:  # type: ignore[override]
         """
         ``gradient_steps`` steps of Algorithm 1's inner loop, each over ``meta_batch`` tasks.
 
         During ``learn()`` the callbacks are told of every gradient step (:func:`gradient_step_event`); one that asks
         to stop (a signal, a checkpoint) stops it between two steps, where the model's state (weights, optimizers,
-        RNG streams, ``_n_updates`` and the iteration's steps still to train) is one a saved model resumes exactly.
+        RNG streams, ``_n_updates`` and the iteration's steps still to train) is one a saved model resumes exactly. Two
+        things are not carried across such a resume: the non-finite-update guard's count of skipped steps in a row
+        (it restarts at 0) and the logged ``train/*`` means of the interrupted iteration, which cover only the steps
+        after the resume; the weights are the uninterrupted run's, bit for bit.
 
         :param gradient_steps: number of gradient steps
         :param batch_size: RL transitions per task in each step (``learn`` passes ``self.batch_size``)
@@ -415,12 +424,10 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             if steps_done > 0 and self._learn_callback is not None and not gradient_step_event(self._learn_callback):
                 break  # a stop was asked for: the state here is one a saved model resumes exactly
             steps_done += 1
-            self._n_updates += 1
-            self._pending_gradient_steps = max(self._pending_gradient_steps - 1, 0)
             replay, context, z0 = self._sample_meta_batch(batch_size)
             with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self._bf16_enabled):
                 losses = self._compute_losses(replay, context, z0)
-            if self.grad_conflict_log_freq > 0 and (self._n_updates - 1) % self.grad_conflict_log_freq == 0:
+            if self.grad_conflict_log_freq > 0 and self._n_updates % self.grad_conflict_log_freq == 0:
                 record_gradient_conflict(self, losses, logs)  # two extra actor-only backward passes
             for optimizer in optimizers:
                 optimizer.zero_grad(set_to_none=True)
@@ -429,11 +436,13 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             # Divergence guard: a non-finite loss or gradient skips the step (one sync); too many in a row stop.
             if not self._update_guard.is_finite(total_loss, parameters):
                 self._update_guard.skip(self._named_losses(losses), self._divergence_settings())
+                self._count_gradient_step()
                 continue
             self._update_guard.ok()
             for optimizer in optimizers:
                 optimizer.step()
             polyak_update_foreach(critic_params, critic_target_params, self.tau)
+            self._count_gradient_step()  # counted once the step's work is done: a save between steps sees it whole
             if self.gradient_step_callback is not None:
                 self.gradient_step_callback()
             for key, value in (

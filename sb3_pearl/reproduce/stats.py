@@ -22,6 +22,7 @@ mean paired difference d = variant - reference, with the claim's margin m > 0:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from typing import NamedTuple
@@ -178,13 +179,20 @@ def sign_flip_p_value(differences: np.ndarray, shift: float = 0.0, max_exact: in
     n = centred.size
     if n == 0:
         return math.nan
-    if n <= max_exact:
-        signs = 1.0 - 2.0 * ((np.arange(2**n)[:, None] >> np.arange(n)) & 1)  # every pattern, the identity first
-    else:
-        signs = np.random.default_rng(0).choice([-1.0, 1.0], size=(draws, n))
+    signs = sign_patterns(n, max_exact, draws)
     observed = abs(float(centred.mean()))
-    means = np.abs(signs @ centred) / n
-    return float(np.mean(means >= observed - 1e-12 * max(1.0, observed)))
+    extreme = int(np.count_nonzero(np.abs(signs @ centred) / n >= observed - 1e-12 * max(1.0, observed)))
+    if n <= max_exact:
+        return extreme / len(signs)  # exact: the identity pattern is among them
+    return (extreme + 1) / (len(signs) + 1)  # drawn patterns: the observed one counted too, so p > 0
+
+
+@functools.cache
+def sign_patterns(n: int, max_exact: int = 16, draws: int = 100_000) -> np.ndarray:
+    """Every sign pattern of ``n`` values (up to ``max_exact``; the identity first), else ``draws`` drawn with seed 0."""
+    if n <= max_exact:
+        return 1.0 - 2.0 * ((np.arange(2**n)[:, None] >> np.arange(n)) & 1)
+    return np.random.default_rng(0).choice([-1.0, 1.0], size=(draws, n))
 
 
 def sign_flip_interval(

@@ -31,8 +31,8 @@ from sb3_pearl.experiments.oracle import COMPETENCE_RULES, SPEED_BINS, Competenc
 from sb3_pearl.reproduce.layout import MODEL_FILE, RESULT_FILE, cpu_info, package_versions, read_run_result, write_json_atomic
 
 VELOCITY_FILE = "velocity_held_out.json"
-ERROR_KEY = "reward_forward"  # -|v - v*| per step on the velocity families
-N_HELD_OUT = 20  # the tasks of every run's own meta-test (cpu preset)
+ERROR_KEY = "velocity_error"  # the velocity families' per-trajectory mean of |v - v*| (their trajectory_info_keys)
+N_HELD_OUT = 20  # the tasks of a run's own meta-test where its result.json does not say (the cpu preset's)
 
 
 def geometric_median(points: np.ndarray, iterations: int = 500, tolerance: float = 1e-10) -> np.ndarray:
@@ -52,8 +52,13 @@ def geometric_median(points: np.ndarray, iterations: int = 500, tolerance: float
     estimate = points.mean(axis=0)
     for _ in range(iterations):
         distances = np.linalg.norm(points - estimate, axis=1)
-        if np.any(distances < 1e-12):  # on a data point: Weiszfeld's weights are undefined there; it is a candidate
-            break
+        on_point = distances < 1e-12
+        if np.any(on_point):  # Weiszfeld's weights are undefined on a data point: is that point the minimum?
+            pull = ((points[~on_point] - estimate) / distances[~on_point, None]).sum(axis=0)
+            if np.linalg.norm(pull) <= np.count_nonzero(on_point):
+                return estimate  # the pull of the other points does not exceed the point's own weight: optimal
+            estimate = estimate + 1e-6 * pull / np.linalg.norm(pull)  # not optimal: step off it, downhill
+            continue
         weights = 1.0 / distances
         new = (points * weights[:, None]).sum(axis=0) / weights.sum()
         if np.linalg.norm(new - estimate) < tolerance:
@@ -78,7 +83,9 @@ def constant_references(targets: np.ndarray) -> dict[str, Any]:
     }
 
 
-def measure_model(model: Any, env: gym.Env, eval_seed: int, rules: CompetenceRules = COMPETENCE_RULES) -> dict[str, Any]:
+def measure_model(
+    model: Any, env: gym.Env, eval_seed: int, rules: CompetenceRules = COMPETENCE_RULES, n_tasks: int = N_HELD_OUT
+) -> dict[str, Any]:
     """
     The held-out velocity measure of one model (module docstring).
 
@@ -86,29 +93,27 @@ def measure_model(model: Any, env: gym.Env, eval_seed: int, rules: CompetenceRul
     :param env: the family's evaluation env
     :param eval_seed: the experiment's eval seed
     :param rules: the measure's repeats and last k
+    :param n_tasks: the held-out tasks of the run's own meta-test
     :return: the record (``rows``, ``targets``, ``settings``, ``wall_time_s``)
     """
     start = time.time()
-    tasks = model_test_tasks(model, env, N_HELD_OUT, eval_seed)
+    tasks = model_test_tasks(model, env, n_tasks, eval_seed)
     settings = {"n_adapt": rules.n_adapt, "n_repeats": rules.repeats, "deterministic": True}
-    result = run_meta_test(model, env, tasks, settings, eval_seed, trace_keys=(ERROR_KEY,))
+    result = run_meta_test(model, env, tasks, settings, eval_seed, trace_keys=())
     base = env.unwrapped
     targets = [task_features(base, task).tolist() for task in tasks]
-    traces = {(int(t["task"]), int(t["repeat"]), int(t["k"])): t.get(ERROR_KEY) or [] for t in result.traces}
-    rows = []
-    for row in result.rows:
-        series = traces.get((int(row["task"]), int(row["repeat"]), int(row["k"])), [])
-        rows.append(
-            {
-                "task": int(row["task"]),
-                "repeat": int(row["repeat"]),
-                "k": int(row["k"]),
-                "error": -float(np.mean(series)) if series else math.nan,
-                "length": int(row["length"]),
-                "violated": bool(row["violated"]),
-                "return": float(row["return"]),
-            }
-        )
+    rows = [
+        {
+            "task": int(row["task"]),
+            "repeat": int(row["repeat"]),
+            "k": int(row["k"]),
+            "error": float(row.get(ERROR_KEY, math.nan)),  # the family's per-trajectory mean of |v - v*|
+            "length": int(row["length"]),
+            "violated": bool(row["violated"]),
+            "return": float(row["return"]),
+        }
+        for row in result.rows
+    ]
     return json_value(
         {
             "settings": {**settings, "n_tasks": len(tasks)},
@@ -143,7 +148,8 @@ def measure_run(folder: Path, force: bool = False) -> Path | None:
     model = algorithm_class(algo).load(folder / MODEL_FILE, device="cpu")  # type: ignore[attr-defined]
     env = gym.make(family.env_id, **env_kwargs)
     try:
-        record = measure_model(model, env, int(result["eval_seed"]))
+        n_tasks = ((result.get("meta_test") or {}).get("config") or {}).get("n_tasks") or N_HELD_OUT
+        record = measure_model(model, env, int(result["eval_seed"]), n_tasks=int(n_tasks))
     finally:
         env.close()
     record.update(

@@ -76,6 +76,7 @@ class InterruptibleExperimentManager(ExperimentManager):
     resume: bool = False  # --resume: continue the checkpoint's run (counters kept) up to n_timesteps in all
     command: list[str] = []  # noqa: RUF012  (train.py's command line, set per instance)
     _stop_signal: str | None = None
+    _stopped_at_once: bool = False  # a second signal stopped training where it was: the resume is not exact
     _phase: str = "setup"  # "training", "saving", "after save": what a signal does (_on_signal)
     _previous_handlers: dict[int, Any]  # the signal handlers to restore
 
@@ -163,6 +164,7 @@ class InterruptibleExperimentManager(ExperimentManager):
             )
         elif self._phase == "training":
             print(f"Received {name} again: stopping training now", flush=True)
+            self._stopped_at_once = True
             raise KeyboardInterrupt
         elif self._phase == "after save":
             print(f"Received {name}: stopping the final meta-test (the model is saved)", flush=True)
@@ -223,7 +225,8 @@ class InterruptibleExperimentManager(ExperimentManager):
         """Write ``interrupted.json``, say what was saved and how to go on, and exit with status 128 + the signal."""
         assert self._stop_signal is not None
         signum = int(signal.Signals[self._stop_signal])
-        exact = in_training and (self._stop_callback.stopped or model.num_timesteps >= self.n_timesteps)
+        finished = model.num_timesteps >= self.n_timesteps and int(getattr(model, "_pending_gradient_steps", 0)) == 0
+        exact = in_training and not self._stopped_at_once and (self._stop_callback.stopped or finished)
         args = [arg for arg in self.command if arg != "--resume-without-buffer"]
         for flag in ("--resume", "--trained-agent", "-i"):
             while flag in args:
