@@ -354,3 +354,27 @@ def test_a_short_run_meta_tests_on_a_few_tasks(tmp_path: Path) -> None:
     model = tmp_path / "short" / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip"
     more = train(tmp_path / "more", "pearlplus", "-i", str(model), params=params)
     assert "the final meta-test: the model's test tasks x 1 prior draw(s)" in more.stdout and "a short run" not in more.stdout
+
+
+def test_params_n_envs_below_one_is_refused(tmp_path: Path) -> None:
+    proc = train(tmp_path, "pearl", params=[*TINY_PARAMS, "n_envs:0"], check=False)
+    assert proc.returncode == 2 and "n_envs must be an integer >= 1, got 0 (in -params)" in proc.stderr, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr and not list(tmp_path.rglob("*.zip"))
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("[1, 2]", "holds a list: it must hold a mapping of env ids to hyperparameter entries"),
+        ("", "holds nothing (the file is empty): it must hold a mapping of env ids to hyperparameter entries"),
+        ("a: [", "is not valid YAML (expected the node content, but found '<stream end>' at line 1, column 5)"),
+        (f"{ENV_ID}: 5", f"the entry {ENV_ID} must be a mapping of hyperparameters, got 5"),
+    ],
+)
+def test_conf_file_that_is_not_a_mapping_is_refused(tmp_path: Path, content: str, message: str) -> None:
+    conf = tmp_path / "conf.yml"
+    conf.write_text(content)
+    argv = ["--algo", "pearl", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf), "-n", "10"]
+    proc = run_in_process(train_main, *argv, check=False)
+    assert proc.returncode == 2 and f"-conf {conf}" in proc.stderr and message in proc.stderr, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1

@@ -744,3 +744,48 @@ def test_train_py_resume_of_a_fine_tune_checkpoint_is_bit_identical(tmp_path: Pa
     b = FineTune.load(tmp_path / "resumed" / "finetune" / f"{NOISY_ENV}_1" / f"{NOISY_ENV}.zip")
     assert a.num_timesteps == b.num_timesteps == 260 and a._n_updates == b._n_updates
     assert all(th.equal(x, y) for x, y in zip(a.policy.state_dict().values(), b.policy.state_dict().values()))
+
+
+# ----------------------------------------------------------------------------------------------
+# 8. Weak cases: one line each
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cls", [PEARL, PEARLPlus])
+def test_observe_refuses_a_reward_that_is_not_a_scalar(cls: type[PEARL], tiny_kwargs: dict[str, Any]) -> None:
+    model = tiny_pearl(tiny_kwargs, cls=cls, seed=0)
+    obs = np.zeros(2, dtype=np.float32)
+    with pytest.raises(ValueError, match=r"observe\(\): reward must be a scalar \(one transition\), got shape \(2,\)"):
+        model.observe(obs, np.zeros(2), np.array([1.0, 2.0]), obs, False)
+    assert model._adapt_context == []
+    model.observe(obs, np.zeros(2), np.array([1.0]), obs, False)  # one reward in an array of one is one transition
+
+
+def test_load_replay_buffer_of_a_model_zip_says_what_to_load(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    model = tiny_pearl(tiny_kwargs, seed=0)
+    model.save(tmp_path / "model.zip")
+    fresh = model.replay_buffer
+    with pytest.raises(ValueError, match=r"model.zip is a model zip, not a replay buffer pickle: load it with PEARLPlus.load"):
+        model.load_replay_buffer(tmp_path / "model.zip")
+    assert model.replay_buffer is fresh
+    finetune = tiny_finetune()  # SB3's load_replay_buffer under the project's mixin
+    finetune.save(tmp_path / "finetune.zip")
+    with pytest.raises(
+        ValueError, match=r"finetune.zip is a model zip, not a replay buffer pickle: load it with FineTune.load"
+    ):
+        finetune.load_replay_buffer(tmp_path / "finetune.zip")
+
+
+def test_reproduce_seeds_beyond_numpys_bound_are_refused(tmp_path: Path) -> None:
+    from sb3_pearl.reproduce.cli import main
+    from sb3_pearl.reproduce.layout import parse_seeds
+
+    assert parse_seeds("4294967295") == [4294967295]
+    for text in ("4294967296", "0,4294967290-4294967296"):
+        with pytest.raises(ValueError, match=r"--seeds: seeds must be integers in \[0, 4294967295\], got 4294967296"):
+            parse_seeds(text)
+    argv = ["status", "safe-point", "--seeds", "4294967296", "--results-dir", str(tmp_path)]
+    proc = run_in_process(main, *argv, check=False)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        "error: --seeds: seeds must be integers in [0, 4294967295], got 4294967296 (in '4294967296')"
+    ]

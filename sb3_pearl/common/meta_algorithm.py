@@ -78,7 +78,8 @@ def check_observed_transition(
     observation_space: spaces.Space, obs: Any, reward: Any, next_obs: Any
 ) -> tuple[np.ndarray, np.ndarray]:
     """
-    The checks of one transition handed to ``observe()`` (the adaptation API): finite values, one observation each.
+    The checks of one transition handed to ``observe()`` (the adaptation API): finite values, one observation each and
+    one (scalar) reward.
 
     :param observation_space: the model's observation space (a Box)
     :param obs: observation the action was taken in
@@ -86,6 +87,11 @@ def check_observed_transition(
     :param next_obs: observation after the step
     :return: ``obs`` and ``next_obs`` as float32 arrays of the observation space's shape
     """
+    if np.size(reward) != 1:
+        raise ValueError(
+            f"observe(): reward must be a scalar (one transition), got shape {np.shape(reward)}: "
+            "call observe() once per step with that step's reward"
+        )
     check_finite_transition(obs, reward, next_obs)
     shape = observation_space.shape
     assert shape is not None

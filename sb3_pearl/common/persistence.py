@@ -201,14 +201,32 @@ def check_buffer_tasks(buffer: Any, tasks: list[Task], path: Any) -> None:
         )
 
 
-def read_replay_buffer(path: str | pathlib.Path | io.BufferedIOBase, verbose: int = 0) -> Any:
+def refuse_model_zip(path: str | pathlib.Path | io.BufferedIOBase, algo_name: str) -> None:
     """
-    ``load_from_pkl`` with a clear error for a truncated or corrupt pickle.
+    Raise a clear error if ``path`` is a zip (a saved model) given to ``load_replay_buffer`` instead of its pickle.
+
+    :param path: what was given to ``load_replay_buffer``
+    :param algo_name: the model's class, for the message
+    """
+    if isinstance(path, (str, os.PathLike)) and os.path.isfile(path) and zipfile.is_zipfile(path):
+        raise ValueError(
+            f"{path} is a model zip, not a replay buffer pickle: load it with {algo_name}.load, and give "
+            "load_replay_buffer the .pkl saved by save_replay_buffer"
+        )
+
+
+def read_replay_buffer(
+    path: str | pathlib.Path | io.BufferedIOBase, verbose: int = 0, algo_name: str = "the model class"
+) -> Any:
+    """
+    ``load_from_pkl`` with a clear error for a model zip given instead, or for a truncated or corrupt pickle.
 
     :param path: the pickle (``.pkl`` is appended if missing, as in SB3)
     :param verbose: SB3 verbosity
+    :param algo_name: the model's class, for the message on a model zip
     :return: the unpickled buffer
     """
+    refuse_model_zip(path, algo_name)
     try:
         return load_from_pkl(path, verbose)
     except (EOFError, pickle.UnpicklingError) as error:
@@ -427,11 +445,12 @@ class ReplayBufferSaveLoadMixin(SaveLoadMixin, _OffPolicyBase):
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """
-        SB3's ``load_replay_buffer``, refusing a truncated pickle or a buffer collected on other training tasks.
+        SB3's ``load_replay_buffer``, refusing a model zip, a truncated pickle or a buffer collected on other training tasks.
 
         :param path: the pickle
         :param truncate_last_traj: SB3's option for ``HerReplayBuffer``
         """
+        refuse_model_zip(path, type(self).__name__)
         previous = self.replay_buffer
         try:
             super().load_replay_buffer(path, truncate_last_traj)
@@ -510,6 +529,7 @@ __all__ = [
     "loaded_model_data",
     "read_model_data",
     "read_replay_buffer",
+    "refuse_model_zip",
     "resolve_model_path",
     "saved_arguments",
     "saved_policy_name",

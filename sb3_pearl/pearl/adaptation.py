@@ -72,7 +72,9 @@ class PosteriorAdaptationMixin:
         :param done: whether the episode ended (not used by the encoder)
         """
         obs, next_obs = check_observed_transition(self.observation_space, obs, reward, next_obs)  # (obs_dim,) each
-        self._adapt_context.append((obs, stored_action(self.action_space, action), float(reward), next_obs))
+        self._adapt_context.append(
+            (obs, stored_action(self.action_space, action), float(np.asarray(reward).reshape(-1)[0]), next_obs)
+        )
 
     def _adaptation_context(self) -> th.Tensor:
         """Everything observed since the last reset as one task's context, (1, N, context_dim)."""

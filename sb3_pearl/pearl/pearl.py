@@ -632,7 +632,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         :param path: the pickle
         :param truncate_last_traj: unused (SB3's option for ``HerReplayBuffer``)
         """
-        buffer = read_replay_buffer(path, self.verbose)
+        buffer = read_replay_buffer(path, self.verbose, type(self).__name__)
         if isinstance(buffer, ReplayBuffer) or not isinstance(buffer, MetaReplayBuffer):
             raise ValueError(
                 f"{path} does not hold a MetaReplayBuffer (per-task buffers saved by PEARL / PEARL+ save_replay_buffer)"

@@ -165,6 +165,7 @@ def check_result_path(path: str | os.PathLike[str], result: dict[str, Any]) -> N
 
 
 MAX_SEEDS = 1000  # a typo such as 0-120000 is refused instead of planning runs for ever
+MAX_SEED_VALUE = 2**32 - 1  # numpy's bound: a larger seed failed in the run, after planning
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -181,6 +182,8 @@ def parse_seeds(text: str) -> list[int]:
         if not match:
             raise ValueError(f"--seeds: {part!r} is not a seed or a range like 0-3 (full argument {text!r})")
         first, last = int(match.group(1)), int(match.group(2) or match.group(1))
+        if max(first, last) > MAX_SEED_VALUE:
+            raise ValueError(f"--seeds: seeds must be integers in [0, {MAX_SEED_VALUE}], got {max(first, last)} (in {text!r})")
         if last < first:
             raise ValueError(f"--seeds: empty range {part!r}")
         if last - first + 1 + len(seeds) > MAX_SEEDS:

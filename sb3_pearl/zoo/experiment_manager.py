@@ -152,6 +152,8 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             return self._read_budget(self.budget)
         if not os.path.isfile(self.config) and self.config.endswith((".yml", ".yaml")):
             raise UsageError(f"hyperparameter file {self.config} not found (expected zoo_hyperparams/{self.algo}.yml)")
+        if self.config.endswith((".yml", ".yaml")):
+            usage.check_conf_file(self.config, self.env_name.gym_id)
         if self.trial_id is not None:  # --trial-id 0 must load trial 0, not the YAML defaults
             self.trial_id = OptunaTrialIndex(self.trial_id)
         try:
@@ -177,6 +179,10 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         :param hyperparams: the entry after ``-params`` overrides
         """
         usage.check_yaml_n_timesteps(hyperparams, f"{self.config} [{self.env_name.gym_id}]")
+        usage.check_n_envs(
+            hyperparams,
+            "-params" if "n_envs" in (self.custom_hyperparams or {}) else f"{self.config} [{self.env_name.gym_id}]",
+        )
         algo_class = ALGOS[self.algo]
         accepted = constructor_kwargs(algo_class)
         unknown = sorted(set(hyperparams) - accepted - ZOO_SPECIAL_KEYS)

@@ -17,6 +17,7 @@ from contextlib import contextmanager
 from typing import Any
 
 import gymnasium as gym
+import yaml
 
 from sb3_pearl.common.checks import output_folder_problem
 from sb3_pearl.zoo.rl_zoo3_coupling import StoreDict
@@ -101,8 +102,10 @@ __all__ = [
     "CheckedStoreDict",
     "UsageError",
     "UsageExit",
+    "check_conf_file",
     "check_env_id",
     "check_log_folder",
+    "check_n_envs",
     "check_n_timesteps",
     "check_seed",
     "check_yaml_n_timesteps",
@@ -199,3 +202,42 @@ def check_yaml_n_timesteps(hyperparams: dict[str, Any], where: str) -> None:
     steps = hyperparams.get("n_timesteps")
     if steps is not None and (not isinstance(steps, (int, float)) or isinstance(steps, bool) or steps < 1):
         raise UsageError(f"n_timesteps in {where} must be a positive number of env steps, got {steps!r}")
+
+
+def check_n_envs(hyperparams: dict[str, Any], where: str) -> None:
+    """
+    Refuse an ``n_envs`` that is not a whole number >= 1 (0 divided the evaluation frequency by zero).
+
+    :param hyperparams: the entry after ``-params`` overrides
+    :param where: where the value was given, for the message
+    """
+    n_envs = hyperparams.get("n_envs")
+    if n_envs is not None and (not isinstance(n_envs, int) or isinstance(n_envs, bool) or n_envs < 1):
+        raise UsageError(f"n_envs must be an integer >= 1, got {n_envs!r} (in {where})")
+
+
+def check_conf_file(path: str, env_id: str) -> None:
+    """
+    Refuse a ``-conf`` YAML file that is not valid YAML, or does not hold a mapping of env ids to hyperparameter entries
+    (rl_zoo3 failed on it with a traceback).
+
+    :param path: the file (a ``.yml`` / ``.yaml`` that exists)
+    :param env_id: the env trained on (its entry, if the file has one, must be a mapping too)
+    """
+    expected = "a mapping of env ids to hyperparameter entries (see zoo_hyperparams/*.yml)"
+    try:
+        with open(path) as file:
+            content = yaml.safe_load(file)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(error, "problem", None) or type(error).__name__
+        raise UsageError(f"-conf {path} is not valid YAML ({problem}{where}): it must hold {expected}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise UsageError(f"-conf {path} cannot be read ({error}): give a YAML file holding {expected}") from None
+    if not isinstance(content, dict):
+        got = "nothing (the file is empty)" if content is None else f"a {type(content).__name__}"
+        raise UsageError(f"-conf {path} holds {got}: it must hold {expected}")
+    entry = content.get(env_id)
+    if env_id in content and not isinstance(entry, dict):
+        raise UsageError(f"-conf {path}: the entry {env_id} must be a mapping of hyperparameters, got {entry!r}")
