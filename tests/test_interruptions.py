@@ -251,3 +251,17 @@ def test_a_buffer_that_keeps_next_observations_in_place_is_not_compacted() -> No
     plain = ReplayBuffer(100, env.observation_space, env.action_space)
     compact = compact_buffer(plain)
     assert compact is not plain and compact_buffer(compact) is compact  # compacting twice changes nothing
+
+
+def test_an_interrupted_harness_run_says_whether_a_checkpoint_exists(tmp_path: Path) -> None:
+    """A child of `reproduce run` stopped before its first checkpoint promised a resume from a checkpoint that did not
+    exist; it now says which of the two the same command will do."""
+    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+    from sb3_pearl.reproduce.cli import resume_promise
+
+    assert "no checkpoint was written yet" in resume_promise(tmp_path) and "starts this run anew" in resume_promise(tmp_path)
+    checkpoint = RunCheckpoint(tmp_path)
+    checkpoint.folder.mkdir()
+    (checkpoint.folder / "model_1200.zip").write_bytes(b"zip")
+    checkpoint.write_state({"phase": "train", "files": {"model": "model_1200.zip"}, "num_timesteps": 1200})
+    assert resume_promise(tmp_path).endswith("resumes this run from its checkpoint at 1,200 env steps")

@@ -336,6 +336,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     raise AssertionError(f"unhandled command {args.command!r}")
 
 
+def resume_promise(folder: Path) -> str:
+    """What the same ``reproduce run`` command does with an interrupted run: resume its checkpoint, or start anew."""
+    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+
+    try:
+        state = RunCheckpoint(folder).read_state()
+    except (OSError, ValueError):
+        state = None
+    if state is None:
+        return (
+            "no checkpoint was written yet (one is written every 10 minutes of training): the same `reproduce run` "
+            "command starts this run anew"
+        )
+    return (
+        f"the same `reproduce run` command resumes this run from its checkpoint at {int(state.get('num_timesteps', 0)):,} "
+        "env steps"
+    )
+
+
 def _run_one(args: argparse.Namespace) -> int:
     """The child of ``run``: owns its run folder (a lock) for as long as it trains; errors keep their traceback (run.log)."""
     import signal
@@ -357,6 +376,6 @@ def _run_one(args: argparse.Namespace) -> int:
         print(f"run-one: {error}: nothing done", file=sys.stderr)
         return LOCKED_EXIT
     except KeyboardInterrupt:
-        print("run-one: interrupted; the same `reproduce run` command resumes this run from its checkpoint", file=sys.stderr)
+        print(f"run-one: interrupted; {resume_promise(folder)}", file=sys.stderr)
         return 130
     return 0
