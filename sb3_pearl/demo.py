@@ -22,9 +22,9 @@ short training run through train.py's pipeline.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -37,7 +37,7 @@ from huggingface_sb3 import EnvironmentName
 
 from sb3_pearl.common.checks import non_negative_int, positive_int
 from sb3_pearl.evaluation.held_out import run_meta_test
-from sb3_pearl.evaluation.meta_test import PAPER_KS, MetaTestResult
+from sb3_pearl.evaluation.meta_test import PAPER_KS, MetaTestResult, read_json
 from sb3_pearl.evaluation.statistics import summarize, wilson_interval
 from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE
 from sb3_pearl.reproduce.layout import check_result_path, read_run_result
@@ -100,8 +100,11 @@ def remeasured_meta_test(run_dir: str | os.PathLike[str]) -> MetaTestResult | No
     path = Path(run_dir, MERGE_REMEASURE.file_name)
     if not path.is_file():
         return None
-    with open(path) as file:
-        record = json.load(file)
+    record = read_json(path)  # an empty or cut file is an error that names it
+    if not isinstance(record, dict) or "prior" not in record or "adapted" not in record:
+        raise ValueError(
+            f"{path} is not a re-measured record (no prior / adapted pass): rerun `python -m sb3_pearl.reproduce remeasure`"
+        )
     check_result_path(path, record)  # a copied or moved record must not stand for another run
     prior, adapted = record["prior"], record["adapted"]
     rows = prior["rows"] + [row for row in adapted["rows"] if int(row["k"]) > 0]  # the rows the summary was made from
@@ -407,4 +410,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except ValueError as error:  # a results file that cannot stand for its run: one line naming it
+        print(f"demo: error: {error}", file=sys.stderr)
+        sys.exit(2)

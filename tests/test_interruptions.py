@@ -265,3 +265,15 @@ def test_an_interrupted_harness_run_says_whether_a_checkpoint_exists(tmp_path: P
     (checkpoint.folder / "model_1200.zip").write_bytes(b"zip")
     checkpoint.write_state({"phase": "train", "files": {"model": "model_1200.zip"}, "num_timesteps": 1200})
     assert resume_promise(tmp_path).endswith("resumes this run from its checkpoint at 1,200 env steps")
+
+
+def test_the_demo_names_an_empty_or_foreign_remeasured_record(tmp_path: Path) -> None:
+    """`make demo` on a zero-byte meta_test_large.json gave a JSON traceback naming no file."""
+    from sb3_pearl import demo
+
+    (tmp_path / "meta_test_large.json").write_text("")
+    with pytest.raises(ValueError, match=r"meta_test_large.json is not valid JSON .*truncated or edited"):
+        demo.remeasured_meta_test(tmp_path)
+    (tmp_path / "meta_test_large.json").write_text('{"summary": []}')
+    with pytest.raises(ValueError, match=r"meta_test_large.json is not a re-measured record .*reproduce remeasure"):
+        demo.remeasured_meta_test(tmp_path)
