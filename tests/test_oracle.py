@@ -188,3 +188,24 @@ def test_competence_rules_against_the_oracle() -> None:
     records["pearlplus"] = [_record(0, {0: 1.0, 1: 0.5}, [[0.0], [2.0], [3.0]])]
     with pytest.raises(ValueError, match="other held-out tasks"):
         family_verdicts("walker2d-vel-long", records)
+
+
+def test_reproduce_velocity_measures_finished_runs_on_their_own_held_out_tasks(tmp_path) -> None:
+    """`reproduce run oracle` (smoke) then `reproduce velocity oracle`: one record per finished run, on the run's own
+    meta-test tasks (its n_tasks), every trajectory's velocity error; a second call measures nothing again."""
+    import json
+
+    from sb3_pearl.reproduce.cli import main as reproduce_main
+
+    args = ["--family", "walker2d-vel-long", "--seeds", "0", "--results-dir", str(tmp_path)]
+    assert reproduce_main(["run", "oracle", "--budget", "smoke", *args]) == 0
+    assert reproduce_main(["velocity", "oracle", *args]) == 0
+    folder = tmp_path / "oracle" / "walker2d-vel-long" / "oracle" / "seed0"
+    record = json.loads((folder / "velocity_held_out.json").read_text())
+    result = json.loads((folder / "result.json").read_text())
+    assert record["settings"]["n_tasks"] == result["meta_test"]["config"]["n_tasks"] == len(record["targets"])
+    assert len(record["rows"]) == len(record["targets"]) * 2 * 6  # 2 repeats, k = 0..5
+    assert all(row["error"] >= 0 for row in record["rows"]) and record["seed"] == 0
+    before = (folder / "velocity_held_out.json").stat().st_mtime_ns
+    assert reproduce_main(["velocity", "oracle", *args]) == 0
+    assert (folder / "velocity_held_out.json").stat().st_mtime_ns == before

@@ -262,6 +262,39 @@ def remeasure_experiments(
     :param echo: progress output
     :return: the records written
     """
+    return measure_finished_runs(
+        results_dir,
+        experiments,
+        lambda folder: remeasure_run(folder, config, force, echo),
+        seeds,
+        echo=echo,
+        verb="remeasured",
+    )
+
+
+def measure_finished_runs(
+    results_dir: str | Path,
+    experiments: Sequence[str],
+    measure: Callable[[Path], Path | None],
+    seeds: Sequence[int] | None = None,
+    families: Callable[[str], bool] | None = None,
+    echo: Callable[[str], None] = print,
+    verb: str = "measured",
+) -> list[Path]:
+    """
+    Run ``measure`` on every finished run the experiments declare (their shared variants in their owners' folders,
+    each once), under each run's lock (a run being trained is skipped and reported): what ``remeasure`` and
+    ``velocity`` share.
+
+    :param results_dir: root of the results layout
+    :param experiments: experiment names
+    :param measure: run folder -> the record written, or None (nothing to do)
+    :param seeds: model seeds (None: each experiment's declared seeds)
+    :param families: which family names to measure (None: all)
+    :param echo: progress output
+    :param verb: the progress line's verb
+    :return: the records written
+    """
     from sb3_pearl.experiments import get_experiment
     from sb3_pearl.reproduce.layout import RunKey, run_dir
     from sb3_pearl.reproduce.ownership import RunLockedError, run_lock
@@ -273,6 +306,8 @@ def remeasure_experiments(
     for name in experiments:
         experiment = get_experiment(name)
         for family in experiment.families:
+            if families is not None and not families(family.name):
+                continue
             for variant in experiment.variants:
                 for seed in experiment.seeds_of(variant.name) if seeds is None else seeds:
                     key = RunKey(experiment.owner(variant.name), family.name, variant.name, seed)
@@ -284,11 +319,11 @@ def remeasure_experiments(
         try:
             with run_lock(folder, wait_s=0.0):
                 start = time.time()
-                out = remeasure_run(folder, config, force, echo)
+                out = measure(folder)
         except RunLockedError as error:
             echo(f"skip {folder}: {error}")
             continue
         if out is not None:
             written.append(out)
-            echo(f"remeasured {folder} in {time.time() - start:.0f} s")
+            echo(f"{verb} {folder} in {time.time() - start:.0f} s")
     return written

@@ -269,32 +269,9 @@ def measure_experiments(
     :param echo: progress output
     :return: the records written
     """
-    from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.reproduce.layout import RunKey, run_dir
-    from sb3_pearl.reproduce.ownership import RunLockedError, run_lock
+    from sb3_pearl.reproduce.remeasure import measure_finished_runs
 
-    root = Path(results_dir)
-    if not root.is_dir():
-        raise ValueError(f"results dir {root} does not exist or is not a folder: pass --results-dir")
-    written: list[Path] = []
-    for name in experiments:
-        experiment = get_experiment(name)
-        for family in experiment.families:
-            if family.name not in SPEED_BINS or (families is not None and family.name not in families):
-                continue
-            for variant in experiment.variants:
-                for seed in experiment.seeds_of(variant.name) if seeds is None else seeds:
-                    folder = run_dir(root, RunKey(experiment.owner(variant.name), family.name, variant.name, seed))
-                    if not (folder / RESULT_FILE).is_file():
-                        continue
-                    try:
-                        with run_lock(folder, wait_s=0.0):
-                            start = time.time()
-                            out = measure_run(folder, force)
-                    except RunLockedError as error:
-                        echo(f"skip {folder}: {error}")
-                        continue
-                    if out is not None:
-                        written.append(out)
-                        echo(f"measured {folder} in {time.time() - start:.0f} s")
-    return written
+    def chosen(family: str) -> bool:
+        return family in SPEED_BINS and (families is None or family in families)
+
+    return measure_finished_runs(results_dir, experiments, lambda folder: measure_run(folder, force), seeds, chosen, echo)
