@@ -205,8 +205,6 @@ def remeasure_run(
     :param echo: progress output
     :return: the record written, or None (no finished run, or already measured)
     """
-    from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.registry import algorithm_class
 
     out = folder / config.file_name
     if not (folder / RESULT_FILE).is_file():
@@ -217,6 +215,28 @@ def remeasure_run(
         if problem is None:
             return None
         echo(f"{out} {problem}: measuring it again")
+    record = measure_committed_model(
+        folder, result, lambda model, env: remeasure_model(model, env, int(result["eval_seed"]), config, what=str(folder))
+    )
+    write_json_atomic(out, record)
+    return out
+
+
+def measure_committed_model(
+    folder: Path, result: Mapping[str, Any], measure: Callable[[Any, gym.Env], dict[str, Any]]
+) -> dict[str, Any]:
+    """
+    Load the finished run's model and its family's env (the run's env kwargs), ``measure`` them, and return the record
+    with the run it was measured from, the package versions and the CPU: what ``remeasure`` and ``velocity`` share.
+
+    :param folder: the run folder
+    :param result: the run's ``result.json``
+    :param measure: (model, env) -> the record
+    :return: the record, identified
+    """
+    from sb3_pearl.experiments import get_experiment
+    from sb3_pearl.registry import algorithm_class
+
     experiment = get_experiment(result["experiment"])
     family = experiment.family(result["family"])
     algo = experiment.variant(result["variant"]).algo
@@ -224,22 +244,11 @@ def remeasure_run(
     model = algorithm_class(algo).load(folder / MODEL_FILE, device="cpu")  # type: ignore[attr-defined]
     env = gym.make(family.env_id, **env_kwargs)
     try:
-        record = remeasure_model(model, env, int(result["eval_seed"]), config, what=str(folder))
+        record = measure(model, env)
     finally:
         env.close()
-    record.update(
-        {
-            "experiment": result["experiment"],
-            "family": result["family"],
-            "variant": result["variant"],
-            "seed": result["seed"],
-            "env_kwargs": env_kwargs,
-            "versions": package_versions(),
-            "cpu": cpu_info(),
-        }
-    )
-    write_json_atomic(out, record)
-    return out
+    identity = {key: result[key] for key in ("experiment", "family", "variant", "seed")}
+    return {**record, **identity, "algo": algo, "env_kwargs": env_kwargs, "versions": package_versions(), "cpu": cpu_info()}
 
 
 def remeasure_experiments(

@@ -28,7 +28,7 @@ from sb3_pearl.envs.task_observation import task_features
 from sb3_pearl.evaluation.held_out import model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import json_value
 from sb3_pearl.experiments.oracle import COMPETENCE_RULES, SPEED_BINS, CompetenceRules
-from sb3_pearl.reproduce.layout import MODEL_FILE, RESULT_FILE, cpu_info, package_versions, read_run_result, write_json_atomic
+from sb3_pearl.reproduce.layout import RESULT_FILE, read_run_result, write_json_atomic
 
 VELOCITY_FILE = "velocity_held_out.json"
 ERROR_KEY = "velocity_error"  # the velocity families' per-trajectory mean of |v - v*| (their trajectory_info_keys)
@@ -134,35 +134,15 @@ def measure_run(folder: Path, force: bool = False) -> Path | None:
     :param force: measure again when the record exists
     :return: the record written, or None
     """
-    from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.registry import algorithm_class
+    from sb3_pearl.reproduce.remeasure import measure_committed_model
 
     out = folder / VELOCITY_FILE
     if not (folder / RESULT_FILE).is_file() or (out.is_file() and out.stat().st_size > 0 and not force):
         return None
     result = read_run_result(folder / RESULT_FILE)
-    experiment = get_experiment(result["experiment"])
-    family = experiment.family(result["family"])
-    algo = experiment.variant(result["variant"]).algo
-    env_kwargs = dict(result.get("spec", {}).get("family", {}).get("env_kwargs") or family.env_kwargs)
-    model = algorithm_class(algo).load(folder / MODEL_FILE, device="cpu")  # type: ignore[attr-defined]
-    env = gym.make(family.env_id, **env_kwargs)
-    try:
-        n_tasks = ((result.get("meta_test") or {}).get("config") or {}).get("n_tasks") or N_HELD_OUT
-        record = measure_model(model, env, int(result["eval_seed"]), n_tasks=int(n_tasks))
-    finally:
-        env.close()
-    record.update(
-        {
-            "experiment": result["experiment"],
-            "family": result["family"],
-            "variant": result["variant"],
-            "seed": result["seed"],
-            "algo": algo,
-            "env_kwargs": env_kwargs,
-            "versions": package_versions(),
-            "cpu": cpu_info(),
-        }
+    n_tasks = int(((result.get("meta_test") or {}).get("config") or {}).get("n_tasks") or N_HELD_OUT)
+    record = measure_committed_model(
+        folder, result, lambda model, env: measure_model(model, env, int(result["eval_seed"]), n_tasks=n_tasks)
     )
     write_json_atomic(out, record)
     return out
