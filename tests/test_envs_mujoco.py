@@ -227,6 +227,19 @@ def test_ant_dir_tasks_are_balanced_and_held_out() -> None:
     assert sorted(t["direction"] for t in pearl) == [0.0, 0.0, math.pi, math.pi]  # PEARL's two exact tasks
 
 
+def test_ant_vel_single_direction_tracks_forward_speed() -> None:
+    """direction_low == direction_high: every task moves along that direction (MAML's forward Ant-Vel with 0)."""
+    env = gym.make("AntVelMeta-v0", direction_low=0.0, direction_high=0.0)
+    tasks = env.unwrapped.sample_tasks(20, seed=0)
+    assert {t["direction"] for t in tasks} == {0.0}
+    assert len({t["speed"] for t in tasks}) == 20 and all(0.0 <= t["speed"] <= 3.0 for t in tasks)
+    env.unwrapped.set_task({"direction": 0.0, "speed": 2.0})
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.zeros(env.action_space.shape))
+    velocity = np.array([info["x_velocity"], info["y_velocity"]])
+    assert info["reward_forward"] == pytest.approx(-np.linalg.norm(velocity - np.array([2.0, 0.0])))
+
+
 @pytest.mark.parametrize(
     "env_id, kwargs, match",
     [

@@ -39,7 +39,8 @@ class AntVelMetaEnv(LocomotionTaskEnv, AntEnv):
     Ant (Gymnasium v5) that must move at a target planar velocity it does not observe.
 
     :param direction_low: lower bound of the direction of the target velocity (radians, from +x)
-    :param direction_high: upper bound of the direction (radians)
+    :param direction_high: upper bound of the direction (radians); equal to ``direction_low``: one direction (with
+        ``0.0``, the forward-only goal velocities of MAML's Ant-Vel)
     :param speed_low: lower bound of the target speed (m/s)
     :param speed_high: upper bound of the target speed (m/s)
     :param unhealthy_penalty: penalty per step skipped by a fall, added once on the unhealthy
@@ -62,7 +63,7 @@ class AntVelMetaEnv(LocomotionTaskEnv, AntEnv):
         max_episode_steps: int = 200,
         **kwargs: Any,
     ) -> None:
-        check_range("direction", direction_low, direction_high)
+        check_range("direction", direction_low, direction_high, allow_empty=True)  # one direction: MAML's forward Ant-Vel
         check_range("speed", speed_low, speed_high, min_value=0.0)
         self.direction_low = float(direction_low)
         self.direction_high = float(direction_high)
