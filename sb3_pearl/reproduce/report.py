@@ -318,6 +318,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     from sb3_pearl.reproduce.figures import plot_curves, plot_decisions, plot_group, plot_prior_selection, plot_seeds
     from sb3_pearl.reproduce.remeasured_tables import remeasured_section
     from sb3_pearl.reproduce.table1_verdicts import decide, decide_confirmation, decision_section
+    from sb3_pearl.reproduce.velocity import competence_section
 
     groups = load_groups(results_dir)
     out = [
@@ -351,6 +352,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
             "",
         ]
         out += decision_section(confirmation)
+    out += competence_section(results_dir)
     out += remeasured_section(results_dir)
     pages: dict[str, list[str]] = defaultdict(list)  # experiment name -> its page's lines
     page_figures = posixpath.join("..", figures_link.rstrip("/"))
