@@ -88,6 +88,38 @@ def vec_env_task_error(env: Any) -> Callable[[Task], str | None] | None:
     return lambda task: env.env_method("task_error", task, indices=[0])[0]
 
 
+def family_env_ids(family: str | None) -> list[str]:
+    """
+    The registered env ids of a task family: those whose entry point is the family's class (a family's name is its
+    class name, :meth:`~sb3_pearl.envs.task_protocol.MetaTaskEnv.task_family`), for the fix a message suggests.
+
+    :param family: the family's name (None: not recorded)
+    :return: e.g. ``["PointGoalMeta-v0"]``; empty for None or a family no registered id builds
+    """
+    import gymnasium as gym
+
+    if family is None:
+        return []
+    return sorted(
+        env_id
+        for env_id, spec in gym.registry.items()
+        if isinstance(spec.entry_point, str) and spec.entry_point.rpartition(":")[2] == family
+    )
+
+
+def family_fix(family: str | None, how: str, otherwise: str) -> str:
+    """
+    The fix of a family mismatch: ``how`` followed by the family's env id(s), or ``otherwise`` when none is known.
+
+    :param family: the family the model was trained on (None: not recorded)
+    :param how: e.g. ``"pass --env"``
+    :param otherwise: e.g. ``"pass the --env it was trained on"``
+    :return: e.g. ``"pass --env PointGoalMeta-v0"``
+    """
+    ids = family_env_ids(family)
+    return f"{how} {' or '.join(ids)}" if ids else otherwise
+
+
 def task_family_problem(
     task_family: str | None,
     train_tasks: Sequence[Task],

@@ -56,7 +56,7 @@ from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags
 from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager
 from sb3_pearl.zoo.meta_testing import SHORT_RUN_FRACTION, ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
-from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
+from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces, check_saved_model_family
 from sb3_pearl.zoo.registry import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, get_latest_run_id, run_zoo_train
 from sb3_pearl.zoo.safe_config import parse_dict_string
@@ -296,6 +296,8 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
 
     def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: VecEnv) -> BaseAlgorithm:
         check_model_env(self.trained_agent, self.env_name.gym_id)
+        flag = "--resume" if self.resume else "-i"  # another family: the fix is --env, not the constructor's advice
+        check_saved_model_family(self.trained_agent, env, self.env_name.gym_id, model_label=f"{flag} {self.trained_agent}")
         model = super()._load_pretrained_agent(hyperparams, env)  # with <folder>/replay_buffer.pkl if there is one
         buffer_path = checkpoint_replay_buffer_path(self.trained_agent)
         if buffer_path is not None and os.path.isfile(buffer_path) and hasattr(model, "load_replay_buffer"):

@@ -1,0 +1,64 @@
+"""Reliability, third round, the last weak cases (docs/reliability.md, "Third round"): each answers in one line that names
+the flag or file and the fix. Every test here failed before its fix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import pytest
+
+from sb3_pearl import PEARLPlus
+from sb3_pearl.diagnose import main as diagnose_main
+from sb3_pearl.zoo import train
+from tests.conftest import TINY_ZOO_PARAMS, run_in_process
+
+ENV_ID = "SafePointGoalMeta-v0"
+
+
+@pytest.fixture(scope="module")
+def point_goal_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A PointGoal model: the same spaces and task keys as SafePointGoal, another family."""
+    path = tmp_path_factory.mktemp("point_goal") / "model.zip"
+    PEARLPlus("MlpPolicy", "PointGoalMeta-v0", n_train_tasks=2, n_test_tasks=1, seed=0).save(path)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# A model of another task family: the message names the env id to pass
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("flag", ["-i", "--resume"])
+def test_train_py_with_a_model_of_another_family_names_the_env_to_pass(
+    tmp_path: Path, point_goal_model: Path, flag: str
+) -> None:
+    """Before: the constructor's advice ('give it an env of that family'), which a train.py user cannot follow."""
+    extra = ["--resume-without-buffer"] if flag == "--resume" else []
+    proc = run_in_process(
+        train,
+        *("--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "logs"), "-n", "200", flag, str(point_goal_model)),
+        *extra,
+        *("-params", *TINY_ZOO_PARAMS),
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    line = proc.stderr.strip().splitlines()[-1]
+    assert f"{flag} {point_goal_model} was not trained on {ENV_ID}: the model was trained on PointGoalMetaEnv tasks" in line
+    assert line.endswith("; pass --env PointGoalMeta-v0"), line
+    assert not list((tmp_path / "logs" / "pearlplus").iterdir())  # refused before anything was trained or kept
+
+
+def test_diagnose_with_a_model_of_another_family_names_the_env_id_to_pass(
+    point_goal_model: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Before: the constructor's ValueError as a traceback."""
+    with pytest.raises(SystemExit) as exit_info:
+        diagnose_main([str(point_goal_model), "--env-id", ENV_ID, "--n-tasks", "1"])
+    assert exit_info.value.code == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"{point_goal_model} was not trained on {ENV_ID}: the model was trained on PointGoalMetaEnv tasks" in line
+    assert line.endswith("; pass --env-id PointGoalMeta-v0"), line
+
+
+def test_the_libraries_family_error_names_the_families_env_id(point_goal_model: Path) -> None:
+    with pytest.raises(ValueError, match=r"give it an env of that family: PointGoalMeta-v0$"):
+        PEARLPlus.load(point_goal_model, env=gym.make(ENV_ID))
