@@ -3,6 +3,8 @@ the flag or file and the fix. Every test here failed before its fix."""
 
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 import gymnasium as gym
@@ -10,6 +12,7 @@ import pytest
 
 from sb3_pearl import PEARLPlus
 from sb3_pearl.diagnose import main as diagnose_main
+from sb3_pearl.reproduce.cli import main as reproduce_main
 from sb3_pearl.zoo import train
 from tests.conftest import TINY_ZOO_PARAMS, run_in_process
 
@@ -62,3 +65,59 @@ def test_diagnose_with_a_model_of_another_family_names_the_env_id_to_pass(
 def test_the_libraries_family_error_names_the_families_env_id(point_goal_model: Path) -> None:
     with pytest.raises(ValueError, match=r"give it an env of that family: PointGoalMeta-v0$"):
         PEARLPlus.load(point_goal_model, env=gym.make(ENV_ID))
+
+
+# ----------------------------------------------------------------------------------------------
+# An output folder that os.access calls writable (root) but that cannot be written: tried, not asked
+# ----------------------------------------------------------------------------------------------
+def _read_only_for_root(monkeypatch: pytest.MonkeyPatch, folder: Path) -> None:
+    """``folder`` as root sees a read-only mount: ``os.access`` says writable, creating anything in it fails."""
+    real_mkdir = os.mkdir
+
+    def mkdir(path: str | os.PathLike[str], *args: int, **kwargs: int) -> None:
+        if Path(path).parent == folder:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        real_mkdir(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+    assert os.access(folder, os.W_OK | os.X_OK)
+
+
+def test_train_py_log_folder_that_root_cannot_write_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: accepted, then a PermissionError / OSError traceback from os.makedirs."""
+    locked = tmp_path / "mount"
+    locked.mkdir()
+    _read_only_for_root(monkeypatch, locked)
+    refused = run_in_process(
+        train, "--algo", "pearlplus", "--env", ENV_ID, "-f", str(locked / "logs"), "-n", "60", check=False
+    )
+    lines = [line for line in refused.stderr.strip().splitlines() if line.strip()]
+    assert refused.returncode == 2 and len(lines) == 1, lines
+    assert f"-f {locked / 'logs'}: {locked} is not writable (Read-only file system)" in lines[0], lines
+    assert list(locked.iterdir()) == []
+
+
+def test_results_dir_that_root_cannot_write_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    locked = tmp_path / "mount"
+    locked.mkdir()
+    _read_only_for_root(monkeypatch, locked)
+    argv = ["run", "safe-point", "--budget", "smoke", "--seeds", "0", "--results-dir", str(locked / "results")]
+    assert reproduce_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.strip().splitlines() == [
+        f"error: --results-dir {locked / 'results'}: {locked} is not writable (Read-only file system)"
+    ]
+    assert list(locked.iterdir()) == []
+
+
+@pytest.mark.skipif(
+    not os.path.isdir("/sys") or os.access("/sys", os.W_OK) is False, reason="needs /sys, writable per os.access"
+)
+def test_a_log_folder_under_sys_is_one_line(tmp_path: Path) -> None:
+    """The real case: root's os.access says /sys is writable; creating a folder there fails (EPERM or EROFS)."""
+    target = f"/sys/sb3-pearl-logs-{os.getpid()}"
+    refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "-f", target, "-n", "60", check=False)
+    lines = [line for line in refused.stderr.strip().splitlines() if line.strip()]
+    assert refused.returncode == 2 and len(lines) == 1 and f"-f {target}: /sys is not writable (" in lines[0], lines
