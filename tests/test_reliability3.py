@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import errno
 import os
+import signal
 from pathlib import Path
 
 import gymnasium as gym
@@ -13,7 +14,7 @@ import pytest
 from sb3_pearl import PEARLPlus
 from sb3_pearl.diagnose import main as diagnose_main
 from sb3_pearl.reproduce.cli import main as reproduce_main
-from sb3_pearl.zoo import train
+from sb3_pearl.zoo import MetaExperimentManager, enjoy, train
 from tests.conftest import TINY_ZOO_PARAMS, run_in_process
 
 ENV_ID = "SafePointGoalMeta-v0"
@@ -121,3 +122,39 @@ def test_a_log_folder_under_sys_is_one_line(tmp_path: Path) -> None:
     refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "-f", target, "-n", "60", check=False)
     lines = [line for line in refused.stderr.strip().splitlines() if line.strip()]
     assert refused.returncode == 2 and len(lines) == 1 and f"-f {target}: /sys is not writable (" in lines[0], lines
+
+
+# ----------------------------------------------------------------------------------------------
+# SIGTERM during train.py's set-up: no half-made run folder; enjoy's latest run is the latest with a model
+# ----------------------------------------------------------------------------------------------
+def test_sigterm_during_the_set_up_leaves_no_run_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: the process died at once (no handler before training), leaving <algo>/<env>_<n>/ without a model."""
+
+    def signalled(manager: MetaExperimentManager, model: object) -> None:  # after the folder is reserved, before learn
+        if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, before):  # the signal would kill pytest here
+            raise AssertionError("no SIGTERM handler during the set-up: the process dies and leaves its run folder")
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    logs, before = tmp_path / "logs", signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(MetaExperimentManager, "_check_held_out_tasks", signalled)
+    proc = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "-f", str(logs), "-n", "200", check=False)
+    assert proc.returncode == 128 + signal.SIGTERM, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "Stopped by SIGTERM before training: nothing trained or saved, no run folder kept" in proc.stdout
+    assert list((logs / "pearlplus").iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is before  # the previous handler is back
+
+
+def test_enjoy_skips_a_newer_run_folder_without_a_model(tmp_path: Path) -> None:
+    """A run killed before its first save (SIGKILL: nothing can clean up) left <env>_2 without a model; <env>_1 has one.
+    Before: 'No model found ... <env>_2/<env>.zip'."""
+    runs = tmp_path / "pearlplus"
+    PEARLPlus("MlpPolicy", ENV_ID, n_train_tasks=2, n_test_tasks=1, seed=0).save(runs / f"{ENV_ID}_1" / f"{ENV_ID}.zip")
+    (runs / f"{ENV_ID}_2" / ENV_ID).mkdir(parents=True)
+    args = ("--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path), "--no-render", "--n-tasks", "1", "--n-adapt", "0")
+    proc = run_in_process(enjoy, *args)
+    assert (
+        f"Loading the latest run with a model, {runs / f'{ENV_ID}_1'}: {ENV_ID}_2 holds none (a run stopped before its "
+        "first save; --exp-id chooses)" in proc.stdout
+    )
+    refused = run_in_process(enjoy, *args, "--exp-id", "2", check=False)  # an explicit choice is kept
+    assert refused.returncode == 2 and f"No model found for pearlplus on {ENV_ID}" in refused.stderr

@@ -54,7 +54,7 @@ from sb3_pearl.experiments.budgets import model_kwargs
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags
-from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager
+from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager, SetupInterrupted
 from sb3_pearl.zoo.meta_testing import SHORT_RUN_FRACTION, ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces, check_saved_model_family
 from sb3_pearl.zoo.registry import OptunaTrialIndex, constructor_kwargs, register_algos
@@ -243,12 +243,14 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         rl_zoo3's set-up; a ValueError on the way (a value the env or the algorithm refuses) is a user error. For an
         algorithm with the adaptation API, the held-out tasks of the meta-tests are drawn once here, so that a draw
         that hits training tasks (``--seed`` equal to the eval seed, a family with few distinct tasks) is refused
-        before training, not after it. A set-up that fails removes the run folder it reserved: nothing is left behind.
+        before training, not after it. A set-up that fails, or that SIGTERM / Ctrl-C stops, removes the run folder it
+        reserved: nothing is left behind.
         """
         try:
-            setup = super().setup_experiment()
-            if setup is not None and self.adaptive:
-                self._check_held_out_tasks(setup[0])
+            with self.stop_signals_abort_setup():  # SIGTERM / Ctrl-C here: SetupInterrupted, the folder removed below
+                setup = super().setup_experiment()
+                if setup is not None and self.adaptive:
+                    self._check_held_out_tasks(setup[0])
             return setup
         except UsageError:
             self._remove_reserved_folder()
@@ -407,6 +409,9 @@ def train(argv: Sequence[str] | None = None) -> None:
         )
         try:
             run_zoo_train(flags.zoo_args, manager, CheckedStoreDict)  # CheckedStoreDict: a bad -params value is one line
+        except SetupInterrupted as stop:
+            print(f"Stopped by {stop.signal_name} before training: nothing trained or saved, no run folder kept", flush=True)
+            raise SystemExit(stop.exit_status) from None
         except SystemExit:
             if {"-h", "--help"} & set(flags.zoo_args):
                 print(PROJECT_FLAGS_HELP)

@@ -6,6 +6,8 @@
   point where it can be resumed exactly (:class:`StopOnSignalCallback`; a second signal stops at once), the model and
   its replay buffer are saved, the run is marked cut (``interrupted.json`` in the run folder, what follows the save
   is skipped) and ``train.py`` exits with status 128 + the signal (143 for SIGTERM, 130 for SIGINT);
+- a signal during the set-up (before training) stopping it at once, the run folder it reserved removed
+  (:class:`SetupInterrupted`, exit status 128 + the signal);
 - an exception during training saving the model reached so far into the run folder, saying where, re-raised;
 - ``--resume`` (:attr:`resume`): training continues a checkpoint's run with its counters, up to ``n_timesteps``.
 """
@@ -18,6 +20,8 @@ import shlex
 import signal
 import sys
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
@@ -34,6 +38,25 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 class StopRequested(KeyboardInterrupt):
     """Raised at an iteration start once a stop was asked for: rl_zoo3's ``learn`` stops as after Ctrl-C."""
+
+
+class SetupInterrupted(KeyboardInterrupt):
+    """
+    SIGTERM or SIGINT during the set-up, before training: nothing to save, so the set-up stops where it is and the run
+    folder it reserved is removed (a half-made folder without a model was left before, and ``enjoy.py``'s "latest
+    run" was then that empty folder).
+
+    :param signal_name: ``"SIGTERM"`` or ``"SIGINT"``
+    """
+
+    def __init__(self, signal_name: str) -> None:
+        super().__init__(signal_name)
+        self.signal_name = signal_name
+
+    @property
+    def exit_status(self) -> int:
+        """128 + the signal, as a process killed by it."""
+        return 128 + int(signal.Signals[self.signal_name])
 
 
 class StopOnSignalCallback(BaseCallback):
@@ -138,6 +161,28 @@ class InterruptibleExperimentManager(ExperimentManager):
                 model.env.close()
             except EOFError:
                 pass
+
+    @contextmanager
+    def stop_signals_abort_setup(self) -> Iterator[None]:
+        """
+        Within the block (the set-up), SIGTERM and SIGINT raise :class:`SetupInterrupted`: the caller removes what it
+        made; the previous handlers are back after the block.
+        """
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def abort(signum: int, frame: FrameType | None) -> None:
+            name = signal.Signals(signum).name
+            print(f"Received {name} during the set-up, before training: stopping (nothing to save)", flush=True)
+            raise SetupInterrupted(name)
+
+        previous = {signum: signal.signal(signum, abort) for signum in STOP_SIGNALS}
+        try:
+            yield
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
 
     def _install_signal_handlers(self) -> dict[int, Any]:
         if threading.current_thread() is not threading.main_thread():
@@ -271,4 +316,4 @@ class InterruptibleExperimentManager(ExperimentManager):
         """What runs once the trained model is saved (the meta-test manager's final meta-test); a signal stops it."""
 
 
-__all__ = ["INTERRUPTED_FILE", "InterruptibleExperimentManager", "StopOnSignalCallback", "StopRequested"]
+__all__ = ["INTERRUPTED_FILE", "InterruptibleExperimentManager", "SetupInterrupted", "StopOnSignalCallback", "StopRequested"]
