@@ -158,3 +158,36 @@ def test_enjoy_skips_a_newer_run_folder_without_a_model(tmp_path: Path) -> None:
     )
     refused = run_in_process(enjoy, *args, "--exp-id", "2", check=False)  # an explicit choice is kept
     assert refused.returncode == 2 and f"No model found for pearlplus on {ENV_ID}" in refused.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# An empty checkpoint replay buffer: the advice works, --resume-without-buffer goes on
+# ----------------------------------------------------------------------------------------------
+def test_resume_with_an_empty_checkpoint_buffer_names_it_and_the_flag_works(tmp_path: Path) -> None:
+    """Before: '... not a complete replay buffer pickle ...; train without it', also with --resume-without-buffer."""
+    logs = tmp_path / "logs"
+    base = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(logs), "--seed", "1", "--eval-freq", "1000"]
+    run_in_process(train, *base, "-n", "300", "--save-freq", "100", "-params", *TINY_ZOO_PARAMS)
+    run = logs / "pearlplus" / f"{ENV_ID}_1"
+    checkpoint, buffer = run / "rl_model_120_steps.zip", run / "rl_model_replay_buffer_120_steps.pkl"
+    buffer.write_bytes(b"")
+    resume = [*base, "-n", "300", "--resume", str(checkpoint)]
+    refused = run_in_process(train, *resume, "-params", *TINY_ZOO_PARAMS, check=False)
+    problem = f"{buffer} is not a complete replay buffer pickle (0 bytes: the file is empty)"
+    assert refused.returncode == 2 and refused.stderr.strip().splitlines()[-1].endswith(
+        f"{problem}: add --resume-without-buffer to resume from an empty buffer (the run then differs from the "
+        "uninterrupted one)"
+    )
+    resumed = run_in_process(train, *resume, "--resume-without-buffer", "-params", *TINY_ZOO_PARAMS)
+    assert f"Warning: {problem}: going on from an empty replay buffer (--resume-without-buffer)" in resumed.stdout
+    assert "Resuming at 120 timesteps: 180 to go" in resumed.stdout
+    assert (logs / "pearlplus" / f"{ENV_ID}_2" / f"{ENV_ID}.zip").is_file()
+    # rl_zoo3's own <folder>/replay_buffer.pkl, loaded with -i, is checked the same way
+    pickle_path = run / "replay_buffer.pkl"
+    pickle_path.write_bytes(b"\x80\x05")
+    model = str(run / f"{ENV_ID}.zip")
+    refused = run_in_process(train, *base, "-n", "100", "-i", model, "-params", *TINY_ZOO_PARAMS, check=False)
+    assert refused.returncode == 2 and refused.stderr.strip().splitlines()[-1].endswith(
+        f"{pickle_path} is not a complete replay buffer pickle (EOFError: Ran out of input): move it away to continue "
+        "training from an empty buffer"
+    )

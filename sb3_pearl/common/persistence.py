@@ -230,10 +230,25 @@ def read_replay_buffer(
     try:
         return load_from_pkl(path, verbose)
     except (EOFError, pickle.UnpicklingError) as error:
-        raise ValueError(
-            f"{path} is not a complete replay buffer pickle ({type(error).__name__}: {error}): the file is truncated or "
-            "corrupt; save the replay buffer again, or train without it"
-        ) from None
+        raise IncompleteReplayBufferError(path, error) from None
+
+
+class IncompleteReplayBufferError(ValueError):
+    """
+    A replay buffer pickle that is empty, truncated or corrupt (e.g. a copy or a save cut short, a full disk).
+
+    :param path: the pickle
+    :param error: what unpickling it raised
+    """
+
+    def __init__(self, path: Any, error: BaseException) -> None:
+        self.path = path
+        empty = isinstance(path, (str, os.PathLike)) and os.path.isfile(path) and os.path.getsize(path) == 0
+        self.reason = "0 bytes: the file is empty" if empty else f"{type(error).__name__}: {error}"
+        super().__init__(
+            f"{path} is not a complete replay buffer pickle ({self.reason}): the file is truncated or corrupt; save the "
+            "replay buffer again, or train without it"
+        )
 
 
 class SaveLoadMixin(_AlgorithmBase):
@@ -455,10 +470,7 @@ class ReplayBufferSaveLoadMixin(SaveLoadMixin, _OffPolicyBase):
         try:
             super().load_replay_buffer(path, truncate_last_traj)
         except (EOFError, pickle.UnpicklingError) as error:
-            raise ValueError(
-                f"{path} is not a complete replay buffer pickle ({type(error).__name__}: {error}): the file is truncated "
-                "or corrupt; save the replay buffer again, or train without it"
-            ) from None
+            raise IncompleteReplayBufferError(path, error) from None
         expand_buffer(self.replay_buffer)
         try:
             check_buffer_tasks(self.replay_buffer, self.train_tasks, path)
@@ -528,6 +540,7 @@ __all__ = [
     "expand_buffer",
     "loaded_model_data",
     "read_model_data",
+    "IncompleteReplayBufferError",
     "read_replay_buffer",
     "refuse_model_zip",
     "resolve_model_path",
