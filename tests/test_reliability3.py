@@ -3,18 +3,23 @@ the flag or file and the fix. Every test here failed before its fix."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import signal
+from collections.abc import Iterator
 from pathlib import Path
+from typing import IO, Any
 
 import gymnasium as gym
 import pytest
 
 from sb3_pearl import PEARLPlus
+from sb3_pearl.common import atomic, persistence
 from sb3_pearl.diagnose import main as diagnose_main
 from sb3_pearl.reproduce.cli import main as reproduce_main
 from sb3_pearl.zoo import MetaExperimentManager, enjoy, train
+from sb3_pearl.zoo.usage import program_name
 from tests.conftest import TINY_ZOO_PARAMS, run_in_process
 
 ENV_ID = "SafePointGoalMeta-v0"
@@ -191,3 +196,46 @@ def test_resume_with_an_empty_checkpoint_buffer_names_it_and_the_flag_works(tmp_
         f"{pickle_path} is not a complete replay buffer pickle (EOFError: Ran out of input): move it away to continue "
         "training from an empty buffer"
     )
+
+
+# ----------------------------------------------------------------------------------------------
+# Disk full at train.py's final save: one line naming the file; nothing older overwritten
+# ----------------------------------------------------------------------------------------------
+def test_a_full_disk_at_the_final_save_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: three to five chained tracebacks (zipfile, atomic_write, rl_zoo3) naming no file."""
+    real_atomic_write = atomic.atomic_write
+    model_file = tmp_path / "logs" / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip"
+
+    @contextlib.contextmanager
+    def full_disk(path: str | os.PathLike[str], mode: str = "wb", **kwargs: Any) -> Iterator[IO[Any]]:
+        with real_atomic_write(path, mode, **kwargs) as file:
+            if Path(path) == model_file:
+                file.write(b"PK\x03\x04 half a zip")
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as a write to the full device raises it
+            yield file
+
+    monkeypatch.setattr(persistence, "atomic_write", full_disk)
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "logs"), "-n", "200", "--eval-freq", "1000"]
+    proc = run_in_process(train, *argv, "-params", *TINY_ZOO_PARAMS, check=False)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert proc.stderr.strip().splitlines() == [
+        f"{program_name()}: error: saving the trained model failed: cannot write {model_file}: No space left on device "
+        "(ENOSPC); "
+        "nothing older was overwritten (every save writes a temporary file and renames it into place, and the "
+        "temporary file was removed): free space (or choose another -f) and train again"
+    ]
+    assert not model_file.exists() and not [path for path in model_file.parent.iterdir() if ".tmp" in path.name]
+
+
+def test_a_write_error_keeps_the_previous_file_and_names_it(tmp_path: Path) -> None:
+    """What the message promises: the previous file is kept, the temporary one removed, the error names the file."""
+    destination = tmp_path / "model.zip"
+    destination.write_bytes(b"the previous model")
+    with (
+        pytest.raises(OSError, match=rf"cannot write {destination}: No space left on device$") as raised,
+        atomic.atomic_write(destination) as file,
+    ):
+        file.write(b"half a zip")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    assert raised.value.errno == errno.ENOSPC
+    assert destination.read_bytes() == b"the previous model" and os.listdir(tmp_path) == ["model.zip"]

@@ -9,11 +9,14 @@
 - a signal during the set-up (before training) stopping it at once, the run folder it reserved removed
   (:class:`SetupInterrupted`, exit status 128 + the signal);
 - an exception during training saving the model reached so far into the run folder, saying where, re-raised;
+- a final save that fails (no space left, ...) answered in one line naming the file (exit status 1);
 - ``--resume`` (:attr:`resume`): training continues a checkpoint's run with its counters, up to ``n_timesteps``.
 """
 
 from __future__ import annotations
 
+import errno
+import glob
 import json
 import os
 import shlex
@@ -247,13 +250,16 @@ class InterruptibleExperimentManager(ExperimentManager):
             self._previous_handlers = self._install_signal_handlers()
         stopped_in_training = self._stop_signal is not None
         try:
-            super().save_trained_model(model)
-            buffer_path = None
-            if stopped_in_training and getattr(model, "replay_buffer", None) is not None:
-                buffer_path = os.path.join(self.save_path, "replay_buffer.pkl")
-                if not self.save_replay_buffer:
-                    print("Saving replay buffer (for the resume)")
-                    model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
+            try:
+                super().save_trained_model(model)
+                buffer_path = None
+                if stopped_in_training and getattr(model, "replay_buffer", None) is not None:
+                    buffer_path = os.path.join(self.save_path, "replay_buffer.pkl")
+                    if not self.save_replay_buffer:
+                        print("Saving replay buffer (for the resume)")
+                        model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
+            except OSError as error:  # e.g. no space left: one line, not the writer's chained tracebacks
+                raise SystemExit(self._save_failed_message(error)) from None
             if not stopped_in_training:
                 self._phase = "after save"  # a signal now stops what follows the save
                 try:
@@ -266,18 +272,41 @@ class InterruptibleExperimentManager(ExperimentManager):
         if self._stop_signal is not None:
             self._mark_interrupted(model, stopped_in_training, buffer_path if stopped_in_training else None)
 
+    def _save_failed_message(self, error: OSError) -> str:
+        """
+        The one line for a final save that failed (no space left on the device, a file too large, ...): the file (the
+        writers name it, :func:`~sb3_pearl.common.atomic.atomic_path`), that nothing older was overwritten, and the
+        checkpoint to resume from if the run wrote one.
+        """
+        problem = str(error.strerror or error)
+        if error.errno is not None and error.errno in errno.errorcode:
+            problem += f" ({errno.errorcode[error.errno]})"
+        checkpoints = glob.glob(os.path.join(self.save_path, "*_steps*.zip"))
+        resume = "free space (or choose another -f) and train again"
+        if checkpoints:
+            latest = max(checkpoints, key=os.path.getmtime)
+            resume = f"free space, then resume the run's last checkpoint: {self._resume_command(latest)}"
+        return (
+            f"{program_name()}: error: saving the trained model failed: {problem}; nothing older was overwritten (every "
+            f"save writes a temporary file and renames it into place, and the temporary file was removed): {resume}"
+        )
+
+    def _resume_command(self, model_path: str) -> str:
+        """``train.py``'s command line with ``--resume model_path`` instead of ``-i`` / ``--resume``."""
+        args = [arg for arg in self.command if arg != "--resume-without-buffer"]
+        for flag in ("--resume", "--trained-agent", "-i"):
+            while flag in args:
+                index = args.index(flag)
+                del args[index : index + 2]
+        return " ".join([program_name(), *map(shlex.quote, args), "--resume", shlex.quote(model_path)])
+
     def _mark_interrupted(self, model: BaseAlgorithm, in_training: bool, buffer_path: str | None) -> None:
         """Write ``interrupted.json``, say what was saved and how to go on, and exit with status 128 + the signal."""
         assert self._stop_signal is not None
         signum = int(signal.Signals[self._stop_signal])
         finished = model.num_timesteps >= self.n_timesteps and int(getattr(model, "_pending_gradient_steps", 0)) == 0
         exact = in_training and not self._stopped_at_once and (self._stop_callback.stopped or finished)
-        args = [arg for arg in self.command if arg != "--resume-without-buffer"]
-        for flag in ("--resume", "--trained-agent", "-i"):
-            while flag in args:
-                index = args.index(flag)
-                del args[index : index + 2]
-        resume = " ".join([program_name(), *map(shlex.quote, args), "--resume", shlex.quote(self._model_path())])
+        resume = self._resume_command(self._model_path())
         record = {
             "signal": self._stop_signal,
             "during": "training" if in_training else "final meta-test",
