@@ -20,7 +20,7 @@ from sb3_pearl.diagnose import main as diagnose_main
 from sb3_pearl.reproduce.cli import main as reproduce_main
 from sb3_pearl.zoo import MetaExperimentManager, enjoy, train
 from sb3_pearl.zoo.usage import program_name
-from tests.conftest import TINY_ZOO_PARAMS, run_in_process
+from tests.conftest import TINY_ZOO_PARAMS, run_in_process, write_model_zip
 
 ENV_ID = "SafePointGoalMeta-v0"
 
@@ -239,3 +239,47 @@ def test_a_write_error_keeps_the_previous_file_and_names_it(tmp_path: Path) -> N
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
     assert raised.value.errno == errno.ENOSPC
     assert destination.read_bytes() == b"the previous model" and os.listdir(tmp_path) == ["model.zip"]
+
+
+# ----------------------------------------------------------------------------------------------
+# reproduce status: a checkpoint whose model zip is cut is damaged, not resumable
+# ----------------------------------------------------------------------------------------------
+def test_status_calls_a_checkpoint_with_a_truncated_model_damaged(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: 'resumable', and the resume failed with advice for train.py users (load best_model.zip ...)."""
+    from sb3_pearl.experiments import get_experiment
+    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+    from sb3_pearl.reproduce.cli import resume_promise
+    from sb3_pearl.reproduce.status import run_status
+
+    folder = tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
+    checkpoint = RunCheckpoint(folder)
+    checkpoint.folder.mkdir(parents=True)
+    model = checkpoint.folder / "model_240.zip"
+    write_model_zip(model, size=5000)
+    state = {"phase": "train", "files": {"model": model.name}, "num_timesteps": 240, "phases": {},
+             "spent": {"cpu_s": 24.0, "wall_s": 30.0}}  # fmt: skip
+    checkpoint.write_state(state)
+    experiment = get_experiment("safe-point")
+    assert [row.status for row in run_status(experiment, "smoke", [0], tmp_path, ["safe-point"], ["alpha-0.1"])] == [
+        "resumable"
+    ]
+    model.write_bytes(model.read_bytes()[:2500])  # a copy or a save cut short
+    (row,) = run_status(experiment, "smoke", [0], tmp_path, ["safe-point"], ["alpha-0.1"])
+    assert row.status == "damaged" and row.progress.startswith(f"checkpoint damaged: {model} is not a readable zip (")
+    args = ["safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0.1"]
+    assert reproduce_main(["status", *args, "--results-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "1 run(s) with a damaged checkpoint (named in the progress column): delete the run's checkpoint/ folder" in out
+    assert "0 finished, 0 resumable, 0 missing" in out
+    assert reproduce_main(["run", *args, "--results-dir", str(tmp_path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"seed0: stops at its resume, checkpoint damaged: {model} is not a readable zip (" in out
+    assert "1 would stop at a damaged checkpoint" in out
+    assert resume_promise(folder).startswith(f"checkpoint damaged: {model} is not a readable zip (")
+    with pytest.raises(ValueError, match=r"checkpoint damaged: .* is not a readable zip .*: delete .*checkpoint, or rerun"):
+        checkpoint.load_model(state, PEARLPlus, None)
+    write_model_zip(model)  # a buffer the state names but that is empty
+    checkpoint.write_state({**state, "files": {"model": model.name, "replay": "replay_240.pkl"}})
+    (checkpoint.folder / "replay_240.pkl").write_bytes(b"")
+    (row,) = run_status(experiment, "smoke", [0], tmp_path, ["safe-point"], ["alpha-0.1"])
+    assert row.status == "damaged" and row.progress == f"checkpoint damaged: {checkpoint.folder / 'replay_240.pkl'} is empty"

@@ -85,12 +85,26 @@ def resolve_model_path(path: str | os.PathLike[str]) -> pathlib.Path:
     raise FileNotFoundError(f"no model zip at {path} (nor {with_zip}): check the path")
 
 
+class DamagedModelError(ValueError):
+    """
+    A model zip that cannot be read: truncated, corrupt or not a Stable-Baselines3 zip.
+
+    :param problem: what is wrong, naming the file (:attr:`problem`, for callers that give their own fix)
+    :param fix: what to do about it
+    """
+
+    def __init__(self, problem: str, fix: str) -> None:
+        super().__init__(f"{problem}: {fix}")
+        self.problem = problem
+
+
 def read_model_data(path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     The ``data`` entry of an SB3 model zip as a JSON dict (serialised objects stay strings), after a CRC check of every entry.
 
     :param path: the model zip (or its path without ``.zip``)
     :return: the saved class parameters
+    :raises DamagedModelError: the zip is truncated, corrupt or not a model zip
     """
     file = resolve_model_path(path)
     fix = (
@@ -100,19 +114,19 @@ def read_model_data(path: str | os.PathLike[str]) -> dict[str, Any]:
     try:
         with zipfile.ZipFile(file) as archive:
             if "data" not in archive.namelist():
-                raise ValueError(f"{file} holds no 'data' entry, so it is not a Stable-Baselines3 model zip: {fix}")
+                raise DamagedModelError(f"{file} holds no 'data' entry, so it is not a Stable-Baselines3 model zip", fix)
             bad_entry = archive.testzip()
             if bad_entry is not None:
-                raise ValueError(f"{file}: the entry {bad_entry!r} fails its CRC check: {fix}")
+                raise DamagedModelError(f"{file}: the entry {bad_entry!r} fails its CRC check", fix)
             raw = archive.read("data")
     except (zipfile.BadZipFile, EOFError, zlib.error) as error:
-        raise ValueError(f"{file} is not a readable zip ({error}): {fix}") from None
+        raise DamagedModelError(f"{file} is not a readable zip ({error})", fix) from None
     try:
         data = json.loads(raw)
     except ValueError as error:
-        raise ValueError(f"{file}: its 'data' entry is not valid JSON ({error}): {fix}") from None
+        raise DamagedModelError(f"{file}: its 'data' entry is not valid JSON ({error})", fix) from None
     if not isinstance(data, dict):
-        raise ValueError(f"{file}: its 'data' entry is not a dict of class parameters: {fix}")
+        raise DamagedModelError(f"{file}: its 'data' entry is not a dict of class parameters", fix)
     return data
 
 
@@ -540,6 +554,7 @@ __all__ = [
     "expand_buffer",
     "loaded_model_data",
     "read_model_data",
+    "DamagedModelError",
     "IncompleteReplayBufferError",
     "read_replay_buffer",
     "refuse_model_zip",

@@ -46,7 +46,7 @@ from stable_baselines3.common.logger import CSVOutputFormat, Logger
 
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.env_state import EnvStateError
-from sb3_pearl.common.persistence import compact_buffer
+from sb3_pearl.common.persistence import DamagedModelError, compact_buffer, read_model_data
 
 CHECKPOINT_DIR = "checkpoint"
 STATE_FILE = "state.json"
@@ -119,6 +119,9 @@ class RunCheckpoint:
         resume with the versions to install, rather than continuing a run that would differ from an unsplit one.
         """
         files = state["files"]
+        damage = self.damage(state)
+        if damage is not None:
+            raise ValueError(f"{damage}: delete {self.folder}, or rerun with --force, to restart the run from zero")
         try:
             model = algo_cls.load(self.folder / files["model"], env=env, device=device, strict_env=True)
         except EnvStateError as error:
@@ -134,6 +137,26 @@ class RunCheckpoint:
                 f"delete {self.folder} to restart the run from zero"
             )
         return model
+
+    def damage(self, state: dict[str, Any]) -> str | None:
+        """
+        Why the checkpoint cannot be resumed although its state names it, or None: its model zip is cut or corrupt
+        (:func:`~sb3_pearl.common.persistence.read_model_data`: the zip's directory, every entry's CRC, the ``data``
+        entry), or a replay-buffer file it names is missing or empty.
+
+        :param state: :meth:`read_state`'s state
+        :return: ``"checkpoint damaged: <what>"``, or None
+        """
+        files = state.get("files") or {}
+        try:
+            read_model_data(self.folder / files["model"])
+        except (DamagedModelError, OSError) as error:
+            return f"checkpoint damaged: {error.problem if isinstance(error, DamagedModelError) else error}"
+        for key, name in files.items():
+            path = self.folder / name
+            if key.startswith("replay") and (not path.is_file() or path.stat().st_size == 0):
+                return f"checkpoint damaged: {path} is {'empty' if path.is_file() else 'missing'}"
+        return None
 
     def _write_parts(self, name: str, data: bytes, key: str) -> dict[str, str]:
         """

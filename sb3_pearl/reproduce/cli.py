@@ -340,10 +340,14 @@ def resume_promise(folder: Path) -> str:
     """What the same ``reproduce run`` command does with an interrupted run: resume its checkpoint, or start anew."""
     from sb3_pearl.reproduce.checkpoint import RunCheckpoint
 
+    checkpoint = RunCheckpoint(folder)
     try:
-        state = RunCheckpoint(folder).read_state()
+        state = checkpoint.read_state()
+        damage = checkpoint.damage(state) if state is not None else None
     except (OSError, ValueError):
-        state = None
+        state = damage = None
+    if damage is not None:
+        return f"{damage}: delete {checkpoint.folder} (or add --force), and the same `reproduce run` command starts it anew"
     if state is None:
         return (
             "no checkpoint was written yet (one is written every 10 minutes of training): the same `reproduce run` "
