@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import gymnasium as gym
+import numpy as np
 import pytest
 
 from sb3_pearl import PEARLPlus
@@ -283,3 +284,38 @@ def test_status_calls_a_checkpoint_with_a_truncated_model_damaged(tmp_path: Path
     (checkpoint.folder / "replay_240.pkl").write_bytes(b"")
     (row,) = run_status(experiment, "smoke", [0], tmp_path, ["safe-point"], ["alpha-0.1"])
     assert row.status == "damaged" and row.progress == f"checkpoint damaged: {checkpoint.folder / 'replay_240.pkl'} is empty"
+
+
+# ----------------------------------------------------------------------------------------------
+# A bad task for a SubprocVecEnv: refused in this process, the workers alive
+# ----------------------------------------------------------------------------------------------
+def test_a_bad_task_for_a_subprocess_vec_env_is_one_line_and_the_env_lives() -> None:
+    """Before: the worker died on set_task's ValueError; the parent got an empty EOFError and a dead VecEnv."""
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv, VecCheckNan
+
+    from sb3_pearl.common.tasks import set_vec_env_task
+    from sb3_pearl.evaluation.meta_test import SingleEnvRunner
+
+    fork = {"start_method": "fork"}
+    env = VecCheckNan(make_vec_env(ENV_ID, n_envs=2, vec_env_cls=SubprocVecEnv, vec_env_kwargs=fork))  # wrapped
+    try:
+        good = env.env_method("get_task", indices=[0])[0]
+        bad = {"goal": np.array([np.nan, 1.0])}
+        with pytest.raises(
+            ValueError, match=r"^set_task\(\{'goal': .*\}\): SafePointGoalMetaEnv.set_task: task keys \['goal'\] != "
+        ):
+            set_vec_env_task(env, bad, [1])
+        with pytest.raises(ValueError, match=r"refused before it reached the SubprocVecEnv's worker processes, which die"):
+            set_vec_env_task(env, {**good, "goal": np.array([np.nan, 1.0])})
+        set_vec_env_task(env, good, [1])  # the workers are alive and take a good task
+        assert env.env_method("get_task") == [good, good]
+    finally:
+        env.close()
+    single = make_vec_env(ENV_ID, n_envs=1, vec_env_cls=SubprocVecEnv, vec_env_kwargs=fork)
+    try:  # the meta-test's runner on a one-env SubprocVecEnv
+        with pytest.raises(ValueError, match=r"set_task\(.*\): SafePointGoalMetaEnv"):
+            SingleEnvRunner(single).set_task(bad)
+        assert single.env_method("get_task")[0].keys() == good.keys()
+    finally:
+        single.close()
