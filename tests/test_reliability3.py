@@ -7,6 +7,9 @@ import contextlib
 import errno
 import os
 import signal
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -17,13 +20,18 @@ import pytest
 
 from sb3_pearl import PEARLPlus
 from sb3_pearl.common import atomic, persistence
+from sb3_pearl.common.callbacks import StopOnSignalCallback
 from sb3_pearl.diagnose import main as diagnose_main
+from sb3_pearl.reproduce.checkpoint import RunCheckpoint
 from sb3_pearl.reproduce.cli import main as reproduce_main
+from sb3_pearl.reproduce.runner import RunStopped, run_one
 from sb3_pearl.zoo import MetaExperimentManager, enjoy, train
 from sb3_pearl.zoo.usage import program_name
 from tests.conftest import TINY_ZOO_PARAMS, run_in_process, write_model_zip
+from tests.test_reproduce_resume import FOLDER, RUN, _metrics
 
 ENV_ID = "SafePointGoalMeta-v0"
+ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
@@ -248,7 +256,6 @@ def test_a_write_error_keeps_the_previous_file_and_names_it(tmp_path: Path) -> N
 def test_status_calls_a_checkpoint_with_a_truncated_model_damaged(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Before: 'resumable', and the resume failed with advice for train.py users (load best_model.zip ...)."""
     from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
     from sb3_pearl.reproduce.cli import resume_promise
     from sb3_pearl.reproduce.status import run_status
 
@@ -319,3 +326,85 @@ def test_a_bad_task_for_a_subprocess_vec_env_is_one_line_and_the_env_lives() -> 
         assert single.env_method("get_task")[0].keys() == good.keys()
     finally:
         single.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# SIGTERM to a `reproduce run` child mid-training: it stops at the next gradient step or env step, saves a checkpoint
+# there, and the parent reports the run interrupted (resumable), not failed
+# ----------------------------------------------------------------------------------------------
+class StopAtGradientStep(StopOnSignalCallback):
+    """The child's stop callback, asked to stop at its ``at``-th gradient step (as the signal handler would)."""
+
+    def __init__(self, at: int) -> None:
+        super().__init__()
+        self.at, self.seen = at, 0
+
+    def on_gradient_step(self) -> bool:
+        self.seen += 1
+        self.requested = self.requested or self.seen == self.at
+        return super().on_gradient_step()
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    return run_one(*RUN, tmp_path_factory.mktemp("whole"), verbose=0)
+
+
+@pytest.mark.parametrize("where", ["env step", "gradient step"])
+def test_a_stopped_harness_run_saves_a_checkpoint_there_and_resumes_to_the_same_metrics(
+    where: str, uninterrupted_run: dict[str, Any], tmp_path: Path
+) -> None:
+    """Before: the child raised KeyboardInterrupt wherever it was and kept only its last periodic checkpoint (none in
+    the first 10 minutes). The periodic checkpoints here are 10 minutes apart: the stop's is the only one."""
+    if where == "env step":
+        stop = StopOnSignalCallback()
+
+        def ask(point: str, n: int) -> None:  # the signal handler's request, at env step 300 (inside an iteration)
+            stop.requested = stop.requested or (point == "step" and n == 300)
+
+        with pytest.raises(RunStopped, match=r"at 300 env steps"):
+            run_one(*RUN, tmp_path, verbose=0, interrupt=ask, stop=stop)
+    else:
+        stop = StopAtGradientStep(7)  # events come between two steps of an iteration: the 7th after its 8th step
+        with pytest.raises(RunStopped, match=r"^at 240 env steps and 8 gradient steps$"):
+            run_one(*RUN, tmp_path, verbose=0, stop=stop)
+    state = RunCheckpoint(tmp_path / FOLDER).read_state()
+    assert state is not None and state["phase"] == "train" and 0 < state["num_timesteps"] < 400
+    assert state["files"]["model"].startswith(f"model_{state['num_timesteps']}_u")  # the env steps and gradient steps
+    resumed = run_one(*RUN, tmp_path, verbose=0)
+    assert _metrics(resumed) == _metrics(uninterrupted_run)
+
+
+def test_sigterm_to_a_harness_child_saves_a_checkpoint_and_the_parent_says_interrupted(tmp_path: Path) -> None:
+    """Before: the child stopped at once (no checkpoint in its first 10 minutes) and the parent said FAILED (exit 130)."""
+    from sb3_pearl.reproduce.ownership import lock_holder
+
+    folder = tmp_path / FOLDER
+    command = [sys.executable, "-m", "sb3_pearl.reproduce", "run", "safe-point", "--budget", "cpu", "--seeds", "0"]
+    command += ["--family", "safe-point", "--variants", "alpha-0.1", "--results-dir", str(tmp_path)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    parent = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.time() + 120
+        while "] learn " not in ((folder / "run.log").read_text() if (folder / "run.log").is_file() else ""):
+            assert parent.poll() is None and time.time() < deadline, "the child did not start training"
+            time.sleep(0.1)
+        time.sleep(1.0)  # inside the training (90,000 steps at the cpu preset)
+        child = lock_holder(folder)
+        assert child is not None
+        os.kill(child, signal.SIGTERM)
+        out, _ = parent.communicate(timeout=120)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+    log = (folder / "run.log").read_text()
+    state = RunCheckpoint(folder).read_state()
+    assert state is not None and state["phase"] == "train" and state["num_timesteps"] > 0, log[-2000:]
+    steps = f"{state['num_timesteps']:,}"
+    assert f"run-one: stopped by SIGTERM at {steps} env steps and " in log, log[-2000:]
+    assert parent.returncode == 130, out
+    assert (
+        f"safe-point safe-point alpha-0.1 seed0: interrupted (exit 143); the same `reproduce run` command resumes this "
+        f"run from its checkpoint at {steps} env steps in " in out
+    ), out
+    assert "0 done, 0 skipped, 0 failed, 1 interrupted" in out and "FAILED" not in out

@@ -91,14 +91,16 @@ class RunCheckpoint:
             if path.name not in keep and not path.name.startswith("."):
                 path.unlink(missing_ok=True)
 
-    def save_model(self, model: Any, progress: Path | None) -> dict[str, str]:
+    def save_model(self, model: Any, progress: Path | None, tag: str | None = None) -> dict[str, str]:
         """
         Save the model, its replay buffer (off-policy models) and a snapshot of the training log, under names of their own.
 
+        :param tag: what the names hold (default: the env steps); a stop between two gradient steps saves at the env
+            steps of an earlier checkpoint, under a tag with the gradient steps
         :return: the files written (``model``, ``replay``, ``progress``), for the state that will name them
         """
         self.folder.mkdir(parents=True, exist_ok=True)
-        steps = int(model.num_timesteps)
+        steps = tag or str(int(model.num_timesteps))
         files = {"model": FILE_NAMES["model"].format(steps)}
         model.save(self.folder / files["model"])
         if getattr(model, "replay_buffer", None) is not None and hasattr(model, "save_replay_buffer"):
@@ -221,6 +223,27 @@ class RunCheckpoint:
     def remove(self) -> None:
         """Delete the checkpoint (the run is complete)."""
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def resume_promise(folder: Path) -> str:
+    """What the same ``reproduce run`` command does with an interrupted run: resume its checkpoint, or start anew."""
+    checkpoint = RunCheckpoint(folder)
+    try:
+        state = checkpoint.read_state()
+        damage = checkpoint.damage(state) if state is not None else None
+    except (OSError, ValueError):
+        state = damage = None
+    if damage is not None:
+        return f"{damage}: delete {checkpoint.folder} (or add --force), and the same `reproduce run` command starts it anew"
+    if state is None:
+        return (
+            "no checkpoint was written yet (one is written every 10 minutes of training): the same `reproduce run` "
+            "command starts this run anew"
+        )
+    return (
+        f"the same `reproduce run` command resumes this run from its checkpoint at {int(state.get('num_timesteps', 0)):,} "
+        "env steps"
+    )
 
 
 class _Unclosed(io.BytesIO):

@@ -29,18 +29,14 @@ from types import FrameType
 from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.common.callbacks import StopOnSignalCallback, StopRequested
 from sb3_pearl.zoo.rl_zoo3_coupling import ExperimentManager
 from sb3_pearl.zoo.usage import program_name
 
 INTERRUPTED_FILE = "interrupted.json"  # in the run folder of a run cut by a signal
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
-
-
-class StopRequested(KeyboardInterrupt):
-    """Raised at an iteration start once a stop was asked for: rl_zoo3's ``learn`` stops as after Ctrl-C."""
 
 
 class SetupInterrupted(KeyboardInterrupt):
@@ -60,40 +56,6 @@ class SetupInterrupted(KeyboardInterrupt):
     def exit_status(self) -> int:
         """128 + the signal, as a process killed by it."""
         return 128 + int(signal.Signals[self.signal_name])
-
-
-class StopOnSignalCallback(BaseCallback):
-    """
-    Stops training, once :attr:`requested`, where the state is one a checkpoint holds, so the saved model resumes
-    exactly: at the next rollout start (PEARL and MAML call it at an iteration start, before the iteration's draws;
-    Fine-Tune and SB3's algorithms before each collection), or, for PEARL / PEARL+, at the next env step (the
-    iteration is kept open, ``model._open_iteration``, and finished by the resumed run) or the next gradient step (the
-    iteration's steps still to train are saved with the model and trained first by the resumed run). A stop therefore
-    lands within one gradient step or env step at any budget: seconds, within every scheduler's grace period.
-    """
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.requested = False
-        self.stopped = False  # training stopped here (False: it ended on its own or was stopped at once)
-
-    def _on_step(self) -> bool:
-        if self.requested and hasattr(self.model, "_open_iteration"):
-            self.stopped = True
-            return False
-        return True
-
-    def on_gradient_step(self) -> bool:
-        """Between two of PEARL's gradient steps (:func:`~sb3_pearl.common.callbacks.gradient_step_event`): stop there."""
-        if self.requested:
-            self.stopped = True
-            return False
-        return True
-
-    def _on_rollout_start(self) -> None:
-        if self.requested:
-            self.stopped = True
-            raise StopRequested
 
 
 class InterruptibleExperimentManager(ExperimentManager):
