@@ -36,7 +36,7 @@ import re
 import shutil
 import sys
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pprint import pprint
 from typing import Any
 from unittest import mock
@@ -322,7 +322,9 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             self._load_replay_buffer(load_buffer, model, buffer_path)
         return model
 
-    def _load_replay_buffer(self, load: Any, model: BaseAlgorithm, path: str, *args: Any, **kwargs: Any) -> None:
+    def _load_replay_buffer(
+        self, load: Callable[..., Any], model: BaseAlgorithm, path: str, *args: Any, **kwargs: Any
+    ) -> None:
         """
         ``load(model, path)`` (the class's ``load_replay_buffer``); an empty, truncated or corrupt pickle is a one-line
         error naming the file and the flag that goes on without it, or with ``--resume-without-buffer`` a warning (the
