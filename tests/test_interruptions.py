@@ -22,6 +22,7 @@ from sb3_pearl.evaluation.progress import TrainingProgressCallback
 from sb3_pearl.zoo.flags import parse_project_flags
 from sb3_pearl.zoo.interruptions import StopOnSignalCallback
 from sb3_pearl.zoo.usage import UsageError
+from tests.conftest import write_model_zip
 
 NOISY_ENV = "NoisyResetSafePointGoalMeta-v0"  # its resets draw from the env's RNG: the env state must resume too
 TOTAL = 660  # tiny PEARL: iteration 0 = 240 env steps and 5 gradient steps, then 140 env steps and 5 per iteration
@@ -262,7 +263,7 @@ def test_an_interrupted_harness_run_says_whether_a_checkpoint_exists(tmp_path: P
     assert "no checkpoint was written yet" in resume_promise(tmp_path) and "starts this run anew" in resume_promise(tmp_path)
     checkpoint = RunCheckpoint(tmp_path)
     checkpoint.folder.mkdir()
-    (checkpoint.folder / "model_1200.zip").write_bytes(b"zip")
+    write_model_zip(checkpoint.folder / "model_1200.zip")
     checkpoint.write_state({"phase": "train", "files": {"model": "model_1200.zip"}, "num_timesteps": 1200})
     assert resume_promise(tmp_path).endswith("resumes this run from its checkpoint at 1,200 env steps")
 

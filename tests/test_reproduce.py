@@ -39,7 +39,7 @@ from sb3_pearl.reproduce.stats import (
     t_quantile,
     verdict,
 )
-from tests.conftest import Completed, run_in_process
+from tests.conftest import Completed, run_in_process, write_model_zip
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_ARGS = ["safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0", "alpha-0.1"]
@@ -307,7 +307,7 @@ def test_run_dry_run_says_what_is_done_resumed_and_started(tmp_path: Path, capsy
     times = {"cpu": {"cpu_time_s": 3600.0}, "wall_time_s": {"total": 3600.0, "train": 3000.0}}
     write_json_atomic(done / "result.json", {**keys, "meta_test": {"summary": summary}, **times})
     (partway / "checkpoint").mkdir(parents=True)
-    (partway / "checkpoint" / "model_240.zip").write_bytes(b"")
+    write_model_zip(partway / "checkpoint" / "model_240.zip")
     state = {"phase": "train", "files": {"model": "model_240.zip"}, "num_timesteps": 240, "phases": {},
              "spent": {"cpu_s": 24.0, "wall_s": 30.0}}  # fmt: skip
     RunCheckpoint(partway).write_state(state)

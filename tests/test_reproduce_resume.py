@@ -19,6 +19,7 @@ from sb3_pearl.reproduce.curve import CURVE_FILE, read_curve
 from sb3_pearl.reproduce.layout import RESULT_FILE
 from sb3_pearl.reproduce.report import build_report
 from sb3_pearl.reproduce.runner import run_one
+from tests.conftest import write_model_zip
 
 RUN = ("safe-point", "safe-point", "alpha-0.1", 0, "smoke")
 FOLDER = Path("safe-point", "safe-point", "alpha-0.1", "seed0")
@@ -119,7 +120,7 @@ def test_status_projects_a_run_at_the_rate_between_its_last_two_checkpoints(tmp_
 
     folder = tmp_path / FOLDER / CHECKPOINT_DIR
     folder.mkdir(parents=True)
-    (folder / "model_240.zip").write_bytes(b"")
+    write_model_zip(folder / "model_240.zip")
     state = {"phase": "train", "files": {"model": "model_240.zip"}, "num_timesteps": 240, "phases": {},
              "spent": {"cpu_s": 24.0, "wall_s": 30.0}}  # fmt: skip
     experiment = get_experiment("safe-point")
@@ -135,7 +136,7 @@ def test_status_projects_a_run_at_the_rate_between_its_last_two_checkpoints(tmp_
     assert left({"cpu_s": 30.0, "steps": 120}) == pytest.approx([40.0, 24.0 + 40.0])  # seed 1: seed 0's projected total
 
     # the checkpoint's size: the files its state names and the state, not leftovers (a kill's temporary file)
-    (folder / "model_240.zip").write_bytes(b"m" * 1_500_000)
+    write_model_zip(folder / "model_240.zip", size=1_500_000)
     (folder / ".model_360.zip.tmp").write_bytes(b"t" * 9_000_000)
     rows = run_status(experiment, "smoke", [0, 1], tmp_path, ["safe-point"], ["alpha-0.1"])
     size = 1_500_000 + (folder / "state.json").stat().st_size

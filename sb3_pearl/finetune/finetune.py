@@ -29,7 +29,7 @@ from sb3_pearl.common.checks import check_int, check_real
 from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
 from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, saved_arguments
-from sb3_pearl.common.tasks import env_time_limit
+from sb3_pearl.common.tasks import env_time_limit, set_vec_env_task
 from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy, check_sac_arguments
@@ -184,7 +184,7 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
         assert self.env is not None
         for index in env_indices:
             task = self.train_tasks[np.random.randint(len(self.train_tasks))]
-            self.env.env_method("set_task", task, indices=[int(index)])
+            set_vec_env_task(self.env, task, [int(index)])
 
     def _setup_learn(
         self,

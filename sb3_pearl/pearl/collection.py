@@ -22,6 +22,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.divergence import check_env_step, check_finite_actions
+from sb3_pearl.common.tasks import set_vec_env_task
 from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.pearl.returns import PendingPiece, cut_before_overwrite, finish_open_pieces, record_row, start_piece
 
@@ -77,7 +78,7 @@ def draw_z(model: PEARL, segment: Segment) -> th.Tensor:
 
 def start_segment(model: PEARL, env: VecEnv, slot: int, segment: Segment, obs: np.ndarray) -> None:
     """Switch env ``slot`` to the segment's task and reset it explicitly (no auto-reset leak)."""
-    env.env_method("set_task", model.train_tasks[segment.task], indices=[slot])
+    set_vec_env_task(env, model.train_tasks[segment.task], [slot])
     obs[slot] = env.env_method("reset", indices=[slot])[0][0]
 
 

@@ -46,7 +46,7 @@ from stable_baselines3.common.logger import CSVOutputFormat, Logger
 
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.env_state import EnvStateError
-from sb3_pearl.common.persistence import compact_buffer
+from sb3_pearl.common.persistence import DamagedModelError, compact_buffer, read_model_data
 
 CHECKPOINT_DIR = "checkpoint"
 STATE_FILE = "state.json"
@@ -91,14 +91,16 @@ class RunCheckpoint:
             if path.name not in keep and not path.name.startswith("."):
                 path.unlink(missing_ok=True)
 
-    def save_model(self, model: Any, progress: Path | None) -> dict[str, str]:
+    def save_model(self, model: Any, progress: Path | None, tag: str | None = None) -> dict[str, str]:
         """
         Save the model, its replay buffer (off-policy models) and a snapshot of the training log, under names of their own.
 
+        :param tag: what the names hold (default: the env steps); a stop between two gradient steps saves at the env
+            steps of an earlier checkpoint, under a tag with the gradient steps
         :return: the files written (``model``, ``replay``, ``progress``), for the state that will name them
         """
         self.folder.mkdir(parents=True, exist_ok=True)
-        steps = int(model.num_timesteps)
+        steps = tag or str(int(model.num_timesteps))
         files = {"model": FILE_NAMES["model"].format(steps)}
         model.save(self.folder / files["model"])
         if getattr(model, "replay_buffer", None) is not None and hasattr(model, "save_replay_buffer"):
@@ -119,6 +121,9 @@ class RunCheckpoint:
         resume with the versions to install, rather than continuing a run that would differ from an unsplit one.
         """
         files = state["files"]
+        damage = self.damage(state)
+        if damage is not None:
+            raise ValueError(f"{damage}: delete {self.folder}, or rerun with --force, to restart the run from zero")
         try:
             model = algo_cls.load(self.folder / files["model"], env=env, device=device, strict_env=True)
         except EnvStateError as error:
@@ -134,6 +139,26 @@ class RunCheckpoint:
                 f"delete {self.folder} to restart the run from zero"
             )
         return model
+
+    def damage(self, state: dict[str, Any]) -> str | None:
+        """
+        Why the checkpoint cannot be resumed although its state names it, or None: its model zip is cut or corrupt
+        (:func:`~sb3_pearl.common.persistence.read_model_data`: the zip's directory, every entry's CRC, the ``data``
+        entry), or a replay-buffer file it names is missing or empty.
+
+        :param state: :meth:`read_state`'s state
+        :return: ``"checkpoint damaged: <what>"``, or None
+        """
+        files = state.get("files") or {}
+        try:
+            read_model_data(self.folder / files["model"])
+        except (DamagedModelError, OSError) as error:
+            return f"checkpoint damaged: {error.problem if isinstance(error, DamagedModelError) else error}"
+        for key, name in files.items():
+            path = self.folder / name
+            if key.startswith("replay") and (not path.is_file() or path.stat().st_size == 0):
+                return f"checkpoint damaged: {path} is {'empty' if path.is_file() else 'missing'}"
+        return None
 
     def _write_parts(self, name: str, data: bytes, key: str) -> dict[str, str]:
         """
@@ -198,6 +223,27 @@ class RunCheckpoint:
     def remove(self) -> None:
         """Delete the checkpoint (the run is complete)."""
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def resume_promise(folder: Path) -> str:
+    """What the same ``reproduce run`` command does with an interrupted run: resume its checkpoint, or start anew."""
+    checkpoint = RunCheckpoint(folder)
+    try:
+        state = checkpoint.read_state()
+        damage = checkpoint.damage(state) if state is not None else None
+    except (OSError, ValueError):
+        state = damage = None
+    if damage is not None:
+        return f"{damage}: delete {checkpoint.folder} (or add --force), and the same `reproduce run` command starts it anew"
+    if state is None:
+        return (
+            "no checkpoint was written yet (one is written every 10 minutes of training): the same `reproduce run` "
+            "command starts this run anew"
+        )
+    return (
+        f"the same `reproduce run` command resumes this run from its checkpoint at {int(state.get('num_timesteps', 0)):,} "
+        "env steps"
+    )
 
 
 class _Unclosed(io.BytesIO):

@@ -23,6 +23,7 @@ from sb3_pearl.common.checks import output_folder_problem, positive_int
 from sb3_pearl.experiments import EXPERIMENTS, get_experiment
 from sb3_pearl.experiments.budgets import PRESETS
 from sb3_pearl.experiments.spec import Experiment
+from sb3_pearl.reproduce.checkpoint import resume_promise
 from sb3_pearl.reproduce.layout import parse_seeds
 
 BACKENDS = ("local", "ray")
@@ -336,45 +337,50 @@ def main(argv: Sequence[str] | None = None) -> int:
     raise AssertionError(f"unhandled command {args.command!r}")
 
 
-def resume_promise(folder: Path) -> str:
-    """What the same ``reproduce run`` command does with an interrupted run: resume its checkpoint, or start anew."""
-    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-
-    try:
-        state = RunCheckpoint(folder).read_state()
-    except (OSError, ValueError):
-        state = None
-    if state is None:
-        return (
-            "no checkpoint was written yet (one is written every 10 minutes of training): the same `reproduce run` "
-            "command starts this run anew"
-        )
-    return (
-        f"the same `reproduce run` command resumes this run from its checkpoint at {int(state.get('num_timesteps', 0)):,} "
-        "env steps"
-    )
-
-
 def _run_one(args: argparse.Namespace) -> int:
-    """The child of ``run``: owns its run folder (a lock) for as long as it trains; errors keep their traceback (run.log)."""
+    """
+    The child of ``run``: owns its run folder (a lock) for as long as it trains; errors keep their traceback (run.log).
+
+    SIGTERM or SIGINT during training stops it where it resumes exactly (the next gradient step, env step or iteration
+    start, :class:`~sb3_pearl.common.callbacks.StopOnSignalCallback`, as ``train.py``), saves a checkpoint there and
+    exits with status 128 + the signal; the same signal again, or one outside training, stops at once (status 130,
+    the last checkpoint kept).
+    """
     import signal
 
+    from sb3_pearl.common.callbacks import StopOnSignalCallback
     from sb3_pearl.reproduce.layout import RunKey, run_dir
     from sb3_pearl.reproduce.ownership import LOCKED_EXIT, RunLockedError, die_with_parent, run_lock
-    from sb3_pearl.reproduce.runner import run_one
+    from sb3_pearl.reproduce.runner import RunStopped, run_one
+
+    stop_callback, received = StopOnSignalCallback(), []
 
     def stop(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
+        name = signal.Signals(signum).name
+        if name in received or not stop_callback.training:
+            raise KeyboardInterrupt
+        received.append(name)
+        stop_callback.requested = True
+        print(
+            f"run-one: received {name}: stopping training at the next gradient step, env step or iteration start, then "
+            f"saving a checkpoint there; {name} again stops at once",
+            file=sys.stderr,
+            flush=True,
+        )
 
-    signal.signal(signal.SIGTERM, stop)  # the parent's stop: like Ctrl-C, the checkpoint on disk is kept
+    for signum in (signal.SIGTERM, signal.SIGINT):  # the parent's stop, a scheduler's or Ctrl-C
+        signal.signal(signum, stop)
     folder = run_dir(args.results_dir, RunKey(args.experiment, args.family, args.variant, args.seed))
     try:
         die_with_parent()
         with run_lock(folder):
-            run_one(args.experiment, args.family, args.variant, args.seed, args.budget, args.results_dir)
+            run_one(args.experiment, args.family, args.variant, args.seed, args.budget, args.results_dir, stop=stop_callback)
     except RunLockedError as error:
         print(f"run-one: {error}: nothing done", file=sys.stderr)
         return LOCKED_EXIT
+    except RunStopped as stopped:
+        print(f"run-one: stopped by {received[0]} {stopped}; {resume_promise(folder)}", file=sys.stderr)
+        return 128 + int(signal.Signals[received[0]])
     except KeyboardInterrupt:
         print(f"run-one: interrupted; {resume_promise(folder)}", file=sys.stderr)
         return 130

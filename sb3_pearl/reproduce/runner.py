@@ -27,6 +27,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_pearl  # noqa: F401  (registers the task families)
+from sb3_pearl.common.callbacks import StopOnSignalCallback, StopRequested
 from sb3_pearl.common.threads import mark_num_threads_explicit
 from sb3_pearl.evaluation.held_out import held_out_meta_test, meta_test_record, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import json_value
@@ -144,6 +145,10 @@ def held_out_record(
     return meta_test_record(result, wall_time_s=time.time() - start, env_kwargs=env_kwargs)
 
 
+class RunStopped(KeyboardInterrupt):
+    """Training stopped on request (a signal to the run's process) where it resumes exactly, its checkpoint saved."""
+
+
 def run_one(
     experiment_name: str,
     family_name: str,
@@ -154,6 +159,7 @@ def run_one(
     verbose: int = 1,
     checkpoint_interval_s: float = DEFAULT_INTERVAL_S,
     interrupt: Interrupt | None = None,
+    stop: StopOnSignalCallback | None = None,
 ) -> dict[str, Any]:
     """
     Train, save and evaluate one (variant, seed) of an experiment; write its result.json last and atomically.
@@ -171,6 +177,8 @@ def run_one(
     :param checkpoint_interval_s: seconds of training between checkpoints (0: at every iteration start)
     :param interrupt: test hook simulating a kill (:class:`~sb3_pearl.reproduce.checkpoint.PeriodicCheckpoint`;
         also called as ``interrupt("meta_test", n)`` before every trajectory of the held-out meta-test)
+    :param stop: a stop asked for during training (``stop.requested``, set by the child's signal handler) stops it where
+        it resumes exactly, saves a checkpoint there and raises :class:`RunStopped`
     :return: the result written
     """
     th.set_num_threads(1)  # one thread per run: the harness runs share the cores
@@ -263,10 +271,21 @@ def run_one(
                     (family.competence, budget["competence_meta_test"], family.trace_keys()) if family.competence else None,
                 )
             )
-        if remaining > 0:
-            model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=state is None)
+        at_resume = (int(model.num_timesteps), int(getattr(model, "_n_updates", 0)))
+        pending = int(getattr(model, "_pending_gradient_steps", 0))  # a stop's gradient steps, trained first
+        try:
+            if remaining > 0 or pending > 0:
+                callback = CallbackList([*callbacks, *([stop] if stop is not None else [])])
+                model.learn(max(remaining, 0), callback=callback, reset_num_timesteps=state is None)
+        except StopRequested:
+            pass  # at an iteration start: saved below
         if curve_env is not None:
             curve_env.close()
+        if stop is not None and stop.stopped:
+            trained = (int(model.num_timesteps), int(getattr(model, "_n_updates", 0)))
+            if trained != at_resume:  # else the checkpoint in force is this state
+                save_state("train", model, checkpoint.save_model(model, progress, "{}_u{}".format(*trained)))
+            raise RunStopped(f"at {trained[0]:,} env steps and {trained[1]:,} gradient steps")
         phases["train_s"] = train_s_before + time.time() - train_start
         model.save(folder / MODEL_FILE)
         save_state("evaluate", model, checkpoint.save_model(model, progress))  # with the buffers the diagnostics read

@@ -29,7 +29,7 @@ from typing import Any, BinaryIO
 
 from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.experiments.spec import Experiment
-from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+from sb3_pearl.reproduce.checkpoint import RunCheckpoint, resume_promise
 from sb3_pearl.reproduce.layout import LOG_FILE, RESULT_FILE, RunKey, discard_result, run_dir
 from sb3_pearl.reproduce.ownership import LOCKED_EXIT, PARENT_PID_ENV, lock_holder
 from sb3_pearl.reproduce.runner import existing_result, run_kwargs
@@ -302,6 +302,10 @@ def run_experiment(
                     echo(f"skip {key.label()}: being run by another process")
                     continue
                 ok = process.returncode == 0 and (folder / RESULT_FILE).is_file()
+                if not ok and process.returncode in STOPPED_EXITS:  # a signal to the child (not from here): resumable
+                    summary.interrupted.append(key)
+                    progress.line(key, False, elapsed, f"interrupted (exit {process.returncode}); {resume_promise(folder)}")
+                    continue
                 (summary.done if ok else summary.failed).append(key)
                 progress.line(key, ok, elapsed, f"FAILED (exit {process.returncode}, see {folder / LOG_FILE})")
     except KeyboardInterrupt:  # Ctrl-C (SIGINT) or SIGTERM: stop the children cleanly, say what is left
@@ -317,6 +321,11 @@ def run_experiment(
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     return summary
+
+
+# A child stopped by SIGTERM or SIGINT (a scheduler, the OOM guard of a cluster, Ctrl-C in its terminal): interrupted,
+# not failed; the same command resumes it from the checkpoint the stop saved.
+STOPPED_EXITS = (128 + signal.SIGTERM, 128 + signal.SIGINT)
 
 
 def _raise_on_sigterm() -> Any:

@@ -12,6 +12,10 @@ run's own rate, a missing run's the projected training time of its siblings in t
 either).
 Finished runs written before the CPU time was recorded count their wall time.
 
+A run whose checkpoint's model zip is cut or corrupt (or whose replay buffer is missing or empty) is "damaged", not
+resumable (:meth:`~sb3_pearl.reproduce.checkpoint.RunCheckpoint.damage`): its resume would stop; the estimate counts it
+as a run to start anew.
+
 A resumable run also shows the size of its checkpoint (the files its state names): a part-way run is carried to the
 next session by committing that checkpoint, and each commit of one adds its size to the repository's history (a
 Walker2D-vel replay buffer at the reference's networks grows by ~110 bytes per env step held).
@@ -32,12 +36,14 @@ from sb3_pearl.reproduce.runner import existing_result
 from sb3_pearl.reproduce.scheduler import plan_runs
 from sb3_pearl.reproduce.stats import mean_finite
 
+DAMAGED_FIX = "delete the run's checkpoint/ folder (or add --force), and `reproduce run` starts it anew"
+
 
 class RunStatus(NamedTuple):
     """One planned run."""
 
     key: RunKey
-    status: str  # "finished", "resumable", "missing", "awaiting" (the selection rule) or "unselected"
+    status: str  # "finished", "resumable", "damaged" (its checkpoint), "missing", "awaiting" (the rule) or "unselected"
     progress: str
     cpu_spent_s: float
     cpu_left_s: float  # nan: unknown
@@ -149,6 +155,12 @@ def run_status(
             partial = not known and math.isfinite(left)
             rows.append(RunStatus(key, "missing", "- (training only)" if partial else "-", 0.0, left, partial))
             continue
+        damage = RunCheckpoint(run_dir(results_dir, key)).damage(state)
+        if damage is not None:  # the run stops at its resume: it restarts from zero once the checkpoint is deleted
+            left = mean_finite([t for t, _ in known]) if known else projected_training(key)
+            spent = float(state["spent"]["cpu_s"])
+            rows.append(RunStatus(key, "damaged", damage, spent, left, not known and math.isfinite(left), size))
+            continue
         n_total = n_timesteps(key)
         done, cpu = int(state["num_timesteps"]), float(state["spent"]["cpu_s"])
         partial = False
@@ -171,7 +183,7 @@ def _hours(seconds: float) -> str:
 
 def _cpu_left(rows: Sequence[RunStatus]) -> str:
     """The CPU time the resumable and missing runs still need, as ``status`` and ``run --dry-run`` say it."""
-    left = [r.cpu_left_s for r in rows if r.status in ("resumable", "missing")]
+    left = [r.cpu_left_s for r in rows if r.status in ("resumable", "damaged", "missing")]
     unknown = sum(not math.isfinite(v) for v in left)
     total = sum(v for v in left if math.isfinite(v))
     partial = sum(r.training_only for r in rows)
@@ -192,8 +204,9 @@ def format_dry_run(
     """
     What ``reproduce run --dry-run`` prints: for every planned run what the same command without ``--dry-run`` would do
     with it (the rule of :func:`~sb3_pearl.reproduce.scheduler.select_pending` and of the runner's resume): a finished
-    run (its ``result.json`` present) is skipped, a run with a checkpoint resumes from it, any other starts; with
-    ``force`` every run starts from zero. Then the counts and the CPU time left (:func:`run_status`'s estimate).
+    run (its ``result.json`` present) is skipped, a run with a checkpoint resumes from it (one with a damaged checkpoint
+    stops there), any other starts; with ``force`` every run starts from zero. Then the counts and the CPU time left
+    (:func:`run_status`'s estimate).
 
     :param rows: :func:`run_status` of the planned runs (the selection rule already applied: no held variant)
     :param experiment: the experiment
@@ -204,7 +217,7 @@ def format_dry_run(
     :raises ValueError: a finished run of another budget preset, as the run itself would refuse it (without ``force``)
     """
     lines: list[str] = []
-    counts = {"skip": 0, "resume": 0, "start": 0}
+    counts = {"skip": 0, "resume": 0, "start": 0, "damaged": 0}
     for row in rows:
         key = row.key
         variant = experiment.variant(key.variant)
@@ -218,18 +231,21 @@ def format_dry_run(
         elif row.status == "resumable" and not force:
             counts["resume"] += 1
             lines.append(f"{key.label()}: resumes from its checkpoint ({row.progress}): {plan}")
+        elif row.status == "damaged" and not force:
+            counts["damaged"] += 1
+            lines.append(f"{key.label()}: stops at its resume, {row.progress}: {DAMAGED_FIX}")
         else:
             counts["start"] += 1
             why = ""
             if force and row.status == "finished":
                 why = " from zero (--force replaces its result.json)"
-            elif force and row.status == "resumable":
+            elif force and row.status in ("resumable", "damaged"):
                 why = " from zero (--force drops its checkpoint)"
             lines.append(f"{key.label()}: starts{why}: {plan}")
     total = (
         f"Dry run, nothing started: {counts['skip']} done (skipped), {counts['resume']} would resume from a checkpoint, "
         f"{counts['start']} would start"
-    )
+    ) + (f", {counts['damaged']} would stop at a damaged checkpoint" if counts["damaged"] else "")
     lines.append(total + ("" if force else f"; {_cpu_left(rows)}"))
     return "\n".join(lines)
 
@@ -267,6 +283,9 @@ def format_status(rows: Sequence[RunStatus]) -> str:
     unselected = sum(r.status == "unselected" for r in rows)
     if unselected:
         lines.append(f"{unselected} run(s) of designs the selection rule did not select: not planned, not counted.")
+    damaged = sum(r.status == "damaged" for r in rows)
+    if damaged:
+        lines.append(f"{damaged} run(s) with a damaged checkpoint (named in the progress column): {DAMAGED_FIX}")
     if counts["resumable"] or counts["missing"]:
         lines.append("The same `reproduce run` command completes them (resumable runs continue from their checkpoints).")
     return "\n".join(lines)
