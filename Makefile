@@ -25,7 +25,7 @@ test-slow: setup
 	$(BIN)/python -m pytest -q -m slow
 
 demo: setup
-	$(BIN)/python -m sb3_pearl.demo
+	$(BIN)/python -m pearl_paper.demo
 
 lint: setup
 	$(BIN)/ruff check .

@@ -28,9 +28,9 @@ import statistics
 import subprocess
 from collections import defaultdict
 
-from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE
-from sb3_pearl.reproduce.formatting import format_interval
-from sb3_pearl.reproduce.stats import Interval, t_interval, t_quantile
+from pearl_paper.experiments.table1_rules import MERGE_REMEASURE
+from pearl_paper.reproduce.formatting import format_interval
+from pearl_paper.reproduce.stats import Interval, t_interval, t_quantile
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MEASURES = (("k = 0 violation, %", 0, "violation_rate", 100.0, 1), ("k = 5 return", 5, "return_mean", 1.0, 2))

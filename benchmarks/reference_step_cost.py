@@ -24,7 +24,7 @@ import torch as th
 import sb3_pearl  # noqa: F401  (registers the envs)
 from benchmarks.budget_timing import pearl_gradient_steps
 from sb3_pearl import PEARL
-from sb3_pearl.experiments.budgets import load_budget, model_kwargs
+from sb3_pearl.budgets import load_budget, model_kwargs
 
 CONFIGS = ((256, 300), (128, 300), (64, 300), (64, 256), (64, 200), (32, 300))
 

@@ -55,7 +55,7 @@ else:
         entry["policy_kwargs"] = eval(entry["policy_kwargs"], {})  # a literal dict in the project's own YAML
         env_id = "SafePointGoalMeta-v0"
     else:
-        from sb3_pearl.experiments.budgets import load_budget, model_kwargs
+        from sb3_pearl.budgets import load_budget, model_kwargs
         entry = model_kwargs(load_budget("cpu", "walker2d-vel", "pearlplus")["kwargs"])
         env_id = "Walker2dVelMeta-v0"
     model = PEARLPlus("MlpPolicy", gym.make(env_id), seed=0, **entry)

@@ -1,7 +1,7 @@
 """Velocity tracking of a trained model on a velocity family (Walker2D-vel, HalfCheetah-Vel).
 
 The competence criterion of these families is the mean absolute error of the forward velocity per step of the
-posterior trajectories (``sb3_pearl.experiments.families``). That one number mixes two failures that call for
+posterior trajectories (``pearl_paper.experiments.families``). That one number mixes two failures that call for
 different remedies:
 
 - the *mean-speed error* ``|mean_t v_t - v*|`` of each trajectory: the policy walks at the wrong speed (a

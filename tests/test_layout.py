@@ -185,7 +185,7 @@ def test_algorithm_modules_import_no_observer(module: str) -> None:
 def test_the_observer_rule_sees_a_function_level_import() -> None:
     """The graph the rule reads holds imports made inside functions (the report's figures and sections are imported in
     ``build_report``), which the import-time test above cannot see."""
-    assert "sb3_pearl.reproduce.remeasured_tables" in GRAPH["sb3_pearl.reproduce.report"]
+    assert "pearl_paper.reproduce.remeasured_tables" in GRAPH["pearl_paper.reproduce.report"]
     assert "sb3_pearl.evaluation.meta_test" in GRAPH["sb3_pearl.pearl.diagnostics.rollouts"]
 
 

@@ -18,11 +18,11 @@ import gymnasium as gym
 import pytest
 
 from sb3_pearl import PEARLPlus
+from sb3_pearl.budgets import load_budget
 from sb3_pearl.evaluation.callbacks import MetaTestCallback
 from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.evaluation.progress import TrainingProgressCallback, format_duration
 from sb3_pearl.evaluation.statistics import summarize
-from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.finetune import FineTune
 from sb3_pearl.zoo import enjoy, train
 from sb3_pearl.zoo.budget import budget_hyperparams, faster_option

@@ -4,7 +4,7 @@ same way, with a top-level link in the repository):
 - ``zoo_hyperparams/<algo>.yml``: one rl-zoo entry per env id for ``train.py`` (the repository's top-level
   ``zoo_hyperparams/`` is a link to this folder);
 - ``presets/<preset>.yml``: the reproduction harness's budget presets (``smoke``, ``cpu``, ``paper``), read by
-  :func:`sb3_pearl.experiments.budgets.load_budget`.
+  :func:`sb3_pearl.budgets.load_budget`.
 """
 
 from pathlib import Path

@@ -1,19 +1,19 @@
 """``train.py --budget PRESET``: a family's entry of a budget preset as the zoo's hyperparameters.
 
 The presets (``sb3_pearl/config/presets/*.yml``, read by
-:func:`~sb3_pearl.experiments.budgets.load_budget`) are the one source of the reproduction harness's budgets;
+:func:`~sb3_pearl.budgets.load_budget`) are the one source of the reproduction harness's budgets;
 ``--budget cpu`` trains with the same entry (sized for one run <= 45 minutes on one core; the timings: docs/reproduce.md)
 instead of the paper-sized entry of ``zoo_hyperparams/<algo>.yml``. Env ids map to the presets' family names through
-:data:`sb3_pearl.experiments.families.FAMILIES`.
+:data:`pearl_paper.experiments.families.FAMILIES`.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from sb3_pearl.experiments.budgets import PRESETS, load_budget, preset_entries
-from sb3_pearl.experiments.families import FAMILIES
-from sb3_pearl.experiments.spec import Family
+from pearl_paper.experiments.families import FAMILIES
+from pearl_paper.experiments.spec import Family
+from sb3_pearl.budgets import PRESETS, load_budget, preset_entries
 from sb3_pearl.zoo.usage import UsageError
 
 
