@@ -32,7 +32,7 @@ lint: setup
 	$(BIN)/ruff format --check .
 
 type: setup
-	$(BIN)/mypy sb3_pearl
+	$(BIN)/mypy sb3_pearl pearl_paper
 
 bench: setup
 	$(BIN)/python benchmarks/throughput.py

@@ -1,6 +1,9 @@
 """Budget presets: how much each (family, algorithm) run trains and meta-tests, as data.
 
-One YAML file per preset in ``sb3_pearl/config/presets/`` (shipped with the package):
+One YAML file per preset in ``sb3_pearl/config/presets/`` (shipped with the package). ``train.py --budget PRESET``
+trains with a family's entry (:mod:`sb3_pearl.zoo.budget`), and the paper's reproduction harness
+(``pearl_paper.reproduce``, in the repository beside the package) sizes every run with them; the loader lives here,
+with the data it reads, so that both use one set of checks:
 
 - ``smoke``: seconds per run, for the tests;
 - ``cpu``: sized for one run <= 45 minutes on one core of the project's CPU machine (docs/reproduce.md has the timing
@@ -19,7 +22,9 @@ Each file maps family name -> zoo algorithm name -> entry::
         shift_meta_test: {...}     # optional: the shifted-distribution meta-test (default: meta_test)
         competence_meta_test: {...}  # optional: the training-task meta-test of the competence check
 
-:func:`load_budget` is the one way to read them (``train.py`` will read the ``cpu`` preset through it).
+:func:`load_budget` is the one way to read them. A top-level key names a task family; :data:`ENV_PRESET_FAMILY`
+says which key ``train.py --budget`` uses for an env id. The other keys (``walker2d-vel-long``, ``...-oracle``,
+``...-columns``) are entries of longer or differently sized runs that the harness's experiments name themselves.
 """
 
 from __future__ import annotations
@@ -35,11 +40,19 @@ from sb3_pearl.evaluation.held_out import META_TEST_DEFAULTS
 from sb3_pearl.registry import ACTIVATIONS, algorithm_class, constructor_kwargs
 
 PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
+#: env id -> the presets' family key whose entries ``train.py --budget`` trains it with
+ENV_PRESET_FAMILY: dict[str, str] = {
+    "SafePointGoalMeta-v0": "safe-point",
+    "Walker2dVelMeta-v0": "walker2d-vel",
+    "AntVelMeta-v0": "ant3d-vel",
+    "HighwayMergeMeta-v0": "highway-merge",
+    "HalfCheetahVelMeta-v0": "cheetah-vel",
+}
 ENTRY_KEYS = frozenset(
     {"n_timesteps", "n_envs", "policy", "kwargs", "meta_test", "shift_meta_test", "competence_meta_test", "curve"}
 )
-# The learning curve on the test tasks (optional; pearl_paper/reproduce/curve.py): every `every` env steps, the
-# reference's evaluation on `n_tasks` held-out tasks (n_adapt + 1 trajectories each, the first
+# The learning curve on the test tasks (optional; the harness's runner draws it, train.py ignores it): every `every`
+# env steps, the reference's evaluation on `n_tasks` held-out tasks (n_adapt + 1 trajectories each, the first
 # `n_prior_trajectories` with z from the prior) and the k = 0 return and violation rate.
 CURVE_KEYS = frozenset({"every", "n_tasks", "n_adapt", "n_prior_trajectories"})
 CURVE_DEFAULTS = {"n_adapt": 2, "n_prior_trajectories": 1}
@@ -241,6 +254,7 @@ def check_preset(preset: str) -> int:
 
 
 __all__ = [
+    "ENV_PRESET_FAMILY",
     "PRESETS",
     "check_preset",
     "load_budget",

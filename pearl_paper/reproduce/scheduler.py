@@ -24,6 +24,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import ModuleType
 from typing import Any, BinaryIO
 
@@ -36,6 +37,9 @@ from sb3_pearl.budgets import load_budget
 
 #: environment of every run, whatever the backend: one thread per run (torch also gets ``set_num_threads(1)``)
 RUN_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+#: the checkout that holds ``pearl_paper``: the package is not installed (the wheel holds ``sb3_pearl`` alone), so a
+#: child finds it, and the same checkout's ``sb3_pearl``, through ``PYTHONPATH`` whatever its working directory
+CHECKOUT = Path(__file__).resolve().parents[2]
 RAY_MISSING = '--backend ray needs Ray, which is not installed: pip install -e ".[ray]"'
 
 
@@ -206,6 +210,16 @@ class Progress:
         )
 
 
+def child_env() -> dict[str, str]:
+    """
+    The environment of one run's child process: this one's, with :data:`RUN_ENV` and the checkout first on the path.
+
+    :return: the environment
+    """
+    path = [str(CHECKOUT), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    return {**os.environ, **RUN_ENV, "PYTHONPATH": os.pathsep.join(dict.fromkeys(path))}
+
+
 def child_command(key: RunKey, budget_preset: str, results_dir: str | os.PathLike[str]) -> list[str]:
     """The command line of one run's child process."""
     return [
@@ -252,7 +266,7 @@ def run_experiment(
     pending = select_pending(runs, budget_preset, results_dir, force, summary, echo)
     total = len(pending)
     echo(f"{experiment.name}: {total} run(s) to do, {len(summary.skipped)} skipped, budget {budget_preset}, {jobs} at a time")
-    env = {**os.environ, **RUN_ENV}
+    env = child_env()
     running: dict[RunKey, tuple[subprocess.Popen[bytes], float, BinaryIO]] = {}
     progress = Progress(total, jobs, echo)
     queue = list(pending)
@@ -352,6 +366,7 @@ __all__ = [
     "Progress",
     "RunSummary",
     "child_command",
+    "child_env",
     "format_duration",
     "load_ray_backend",
     "plan_runs",
