@@ -1,7 +1,7 @@
-"""Issue 38's constraint on real runs: Highway-Merge `cpu` runs trained after the faster step keep their meta-test.
+"""The faster step's constraint on real runs: Highway-Merge `cpu` runs trained after it keep their meta-test.
 
-Issue 38 changed the PEARL(+) step's code, not its math (commit 4f043cd; ``tests/test_update_speed.py`` compares 100
-updates of the old and the new path). Its constraint adds that "a Highway-Merge `cpu` run's meta-test stays inside
+The faster step changed the PEARL(+) step's code, not its math (commit 4f043cd; ``tests/test_update_speed.py`` compares
+100 updates of the old and the new path). Its constraint adds that "a Highway-Merge `cpu` run's meta-test stays inside
 its interval". Some committed Highway-Merge rows have seeds trained on both sides of that commit (each result.json
 records the commit it was trained from): this script splits every such row by whether its training commit contains
 4f043cd, and prints, on the re-measured meta-test (1,000 k = 0 trajectories a seed):

@@ -1,4 +1,4 @@
-"""Cost of PEARL's reference cheetah-vel configuration on this CPU, and of its reductions (issue 19, the ``cpu`` preset).
+"""Cost of PEARL's reference cheetah-vel configuration on this CPU, and of its reductions (the ``cpu`` preset's).
 
 For each configuration (RL rows per task, network width), on one torch thread: seconds per gradient step
 (``meta_batch`` 16 tasks, 100 context rows each, the configuration's rows and widths) and per training env step

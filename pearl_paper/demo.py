@@ -47,8 +47,8 @@ from sb3_pearl.zoo.registry import register_algos
 from sb3_pearl.zoo.rl_zoo3_coupling import get_latest_run_id
 
 # The headline comparison, by label: the committed variant folders under results/ (every seed<N>/ with a result.json
-# counts). Decided by issue 36 (docs/results.md, "Table I on Highway-Merge at the reference's entropy setting"); the
-# README's headline table holds the same numbers.
+# counts). Decided by Table I's pre-written rules (docs/results.md, "Table I on Highway-Merge at the reference's
+# entropy setting"); the README's headline table holds the same numbers.
 HEADLINE: dict[str, str] = {
     "PEARL": "merge-premise/highway-merge/pearl-fixed-entropy",
     "PEARL+": "merge-table1/highway-merge/pearlplus-fixed-entropy",

@@ -1,17 +1,17 @@
-"""Tables I-III on Highway-Merge again, at the PEARL reference's entropy setting (issue 20, the follow-up of run 2).
+"""Tables I-III on Highway-Merge again, at the PEARL reference's entropy setting (``merge-premise``'s follow-up).
 
 ``merge-premise`` trained PEARL on Highway-Merge with the reference's fixed entropy coefficient 1 and reward scale 5
 (instead of SB3's automatic entropy and reward scale 1, Table I's ``cpu`` setting). Its decision rule (written before
 its runs, :mod:`pearl_paper.experiments.merge_premise`) reads the posterior AUC against z0, the return across k and
-PEARL's k = 0 crash rate; where the encoder carries task information and PEARL's prior crashes, the issue asks for the
+PEARL's k = 0 crash rate; where the encoder carries task information and PEARL's prior crashes, the rule asks for the
 merge row of Table I again at that setting (PEARL and PEARL+, 4 seeds, with the shift column), then Table II's
 ablation and Table III's alpha sweep on merge (3 seeds each). Table III was extended to 4 seeds (the paper's count:
 "each mean and standard deviation is calculated on 4 independent runs") once its 3-seed verdicts, reported in
-docs/results.md, were in. Issue 36 ("if compute is left") takes the rows
-next to Table I's to its 10 seeds: Table III's alpha 0 (alpha 0.1 is Table I's PEARL+ already) and Table II's
-300-node PEARL+ beside PEARL (``variant_seeds``). Once those were in (2026-12-06), Table II's two other rows (without
-the prior critic, and 100 nodes) were declared at the same 10 seeds, so that the whole table is paired with PEARL on
-one set of seeds; Table III's alpha 0.01, 1 and 5 rows keep their 4 seeds.
+docs/results.md, were in. The rows next to Table I's then went to its 10 seeds, as compute allowed: Table III's
+alpha 0 (alpha 0.1 is Table I's PEARL+ already) and Table II's 300-node PEARL+ beside PEARL (``variant_seeds``).
+Once those were in, Table II's two other rows (without the prior critic, and 100 nodes) were declared at the same 10
+seeds, so that the whole table is paired with PEARL on one set of seeds; Table III's alpha 0.01, 1 and 5 rows keep
+their 4 seeds.
 
 The three experiments below are those tables' merge variants with ``ent_coef=1.0`` and ``reward_scale=5.0`` added to
 their overrides (variant names get the suffix ``-fixed-entropy``), with the tables' own paper cells and claims renamed
@@ -21,7 +21,7 @@ numbers): PEARL's runs are ``merge-premise``'s (seeds 0-1 done there, 2-3 run in
 report shows the seeds it declares), and PEARL+ at alpha 0.1 is both Table I's PEARL+ row and Table III's alpha 0.1
 column. The original tables keep their own eval seeds and their runs at the ``cpu`` setting.
 
-A PEARL+ form recommended by the prior-critic selection (issue 18), once there is one, joins ``merge-table1`` as a
+A PEARL+ form recommended by the prior-critic selection (``prior-critic``), once there is one, joins ``merge-table1`` as a
 variant; none is recommended yet.
 """
 
@@ -107,14 +107,14 @@ def merge_at_reference_entropy(
 
 PEARL_RUNS = {f"pearl{SUFFIX}": MERGE_PREMISE.name}  # merge-premise's PEARL at this setting
 
-# 10 seeds since issue 36 (seeds 0-3 before it, 4-9 added; the rules: pearl_paper.experiments.table1_rules)
+# Table I's 10 seeds (0-3 first, 4-9 added for the pre-written rules: pearl_paper.experiments.table1_rules)
 TABLE1_SEEDS = tuple(range(10))
 MERGE_TABLE1 = merge_at_reference_entropy(TABLE1, "merge-table1", ("pearl", "pearlplus"), TABLE1_SEEDS, PEARL_RUNS)
 MERGE_TABLE2 = merge_at_reference_entropy(
     TABLE2,
     "merge-table2",
     ("pearl", "pearlplus-wo", "pearlplus-300", "pearlplus-100"),
-    TABLE1_SEEDS,  # every row at Table I's 10 seeds: the 300-node row since issue 36, the other two rows since 2026-12-06
+    TABLE1_SEEDS,  # every row at Table I's 10 seeds: paired with PEARL on one set of seeds
     PEARL_RUNS,
 )
 # alpha 0.1 is Table I's PEARL+ (same model): its runs are merge-table1's
@@ -126,5 +126,5 @@ MERGE_TABLE3 = merge_at_reference_entropy(
     (0, 1, 2, 3),
     {PEARLPLUS.name: MERGE_TABLE1.name},
     same_as={"alpha-0.1": PEARLPLUS},
-    variant_seeds={"alpha-0": TABLE1_SEEDS, "alpha-0.1": TABLE1_SEEDS},  # issue 36: alpha 0 and 0.1 at 10 seeds
+    variant_seeds={"alpha-0": TABLE1_SEEDS, "alpha-0.1": TABLE1_SEEDS},  # the rows beside Table I at its 10 seeds
 )

@@ -1,4 +1,4 @@
-"""``merge-premise``: does the paper's premise appear on Highway-Merge at the reference's entropy setting? (issue 20)
+"""``merge-premise``: does the paper's premise appear on Highway-Merge at the reference's entropy setting?
 
 Table I's merge row was trained with SB3's automatic entropy coefficient and reward scale 1; there, the encoder learned
 nothing (posterior AUC against z0 0.51-0.59, returns flat in k), one cautious task-independent policy solved every
@@ -12,7 +12,7 @@ soft value and actor loss are the exact expectations over the 5 meta-actions (``
 the Box core samples one action, so the fixed coefficient enters both losses as in the reference. Table I's ``pearl``
 runs (automatic entropy, reward scale 1) are shared as the reference: same eval seed, common random numbers.
 
-What decides (issue 20, before the runs): the encoder carries task information if the posterior AUC against z0
+What decides (written before the runs): the encoder carries task information if the posterior AUC against z0
 (``diagnostics.overlap``) is well above 0.5 and the return rises with k; the premise appears if, in addition, PEARL's
 prior crashes (k = 0 crash rate above 0). If both hold, the merge row is rerun at this setting (PEARL and both PEARL+
 forms, 4 seeds) with Tables II and III; if not, the diagnostics are reported and Tables II and III stay declared.
@@ -24,7 +24,7 @@ from pearl_paper.experiments.families import HIGHWAY_MERGE
 from pearl_paper.experiments.spec import Claim, Experiment, Variant
 from pearl_paper.experiments.table1 import TABLE1
 
-SOURCE = "issue 20 (the paper's premise at the reference's entropy setting)"
+SOURCE = "the paper's premise at the reference's entropy setting (not in the paper)"
 REFERENCE_ENTROPY = {"ent_coef": 1.0, "reward_scale": 5.0}  # oyster configs/default.py, as the MuJoCo rows
 
 MERGE_PREMISE = Experiment(

@@ -1,4 +1,4 @@
-"""``pearl-reference``: our PEARL against a published PEARL, on the reference's own family and configuration (issue 19).
+"""``pearl-reference``: our PEARL against a published PEARL, on the reference's own family and configuration.
 
 PEARL on HalfCheetahVelMeta-v0 with the reference implementation's cheetah-vel configuration (katerakelly/oyster,
 ``configs/cheetah-vel.json`` over ``configs/default.py``): the ``paper`` preset holds it as published, the ``cpu``
@@ -18,7 +18,7 @@ preset's Walker2D-vel entry: 3x300 networks, 3x200 encoder, meta-batch 16, 2000 
 iteration, 2000 initial steps per training task) with cheetah-vel's one reduction, 32 RL rows per task instead of 256;
 the family's own tasks (40 / 10), episodes and criteria. 500k env steps, a curve every 20k (``--family
 walker2d-vel-ref --seeds 0,1``): if it becomes competent, the env-step count is the `cpu-long` budget of Table I's
-Walker row (issue 20, run 1). It was not by 500k (velocity error 0.65 m/s, still falling; docs/results.md).
+Walker row. It was not by 500k (velocity error 0.65 m/s, still falling; docs/results.md).
 
 The fourth family, ``walker2d-vel-ref-long``, is walker2d-vel-ref unchanged but trained to 1.5M env steps: the
 tracking diagnostic found the walker too slow on the fast targets rather than in the wrong task (a locomotion skill

@@ -1,4 +1,4 @@
-"""The prior-critic experiments: which design of PEARL+'s prior critic values the prior policy right (issue 18).
+"""The prior-critic experiments: which design of PEARL+'s prior critic values the prior policy right.
 
 Not in the paper. The paper's PEARL+ scores the actor's prior term with one new Q-network Q~(s, a, z0) trained by
 its own soft Bellman loss; on every family we trained, that critic does not value the z0 policy (docs/results.md),
@@ -45,11 +45,11 @@ DESIGNS: dict[str, tuple[str, dict[str, Any]]] = {
     "maintarget": ("bootstrapped from the critic's target at z0", {"prior_target": "main"}),
     "ensemble5": ("minimum of a 5-network ensemble", {"prior_n_critics": 5}),
     "cql5": ("conservative penalty, weight 5", {"prior_conservative_weight": 5.0}),
-    # added 2026-12-03, after 49 of the 65 alpha-0.1 runs of the seven above (docs/pearl.md); the rule is unchanged
+    # added after most alpha-0.1 runs of the seven above were in (docs/pearl.md); the selection rule is unchanged
     "mc": ("Monte-Carlo targets on prior-z data", {"prior_target": "mc", "prior_data": "prior"}),
 }
 SELECTION_ALPHAS = (0.1, 1.0)
-SOURCE = "issue 18 (not in the paper)"
+SOURCE = "the prior-critic selection (not in the paper)"
 
 
 def design_variant(design: str, alpha: float, prefix: str = "") -> Variant:

@@ -263,8 +263,8 @@ class Experiment:
     :param families: the task families
     :param variants: the algorithm variants (each runs on every family)
     :param seeds: default model seeds
-    :param variant_seeds: variants declared with other seeds than ``seeds``, ``{variant: seeds}`` (issue 36 took
-        two rows of Tables II and III to Table I's 10 seeds and left the others at theirs); see :meth:`seeds_of`
+    :param variant_seeds: variants declared with other seeds than ``seeds``, ``{variant: seeds}`` (e.g. two rows
+        of Tables II and III at Table I's 10 seeds, the others at theirs); see :meth:`seeds_of`
     :param budget: default budget preset
     :param eval_seed: the fixed meta-test seed: the test tasks are ``sample_tasks(n_tasks, eval_seed)``
         of the family env, the same for every variant and model seed (common random numbers); also

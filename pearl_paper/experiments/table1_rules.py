@@ -1,4 +1,4 @@
-"""Table I decided (issue 36): the rules, written and committed before the runs they judge.
+"""Table I decided: the rules, written and committed before the runs they judge.
 
 The product's one claim is that PEARL+'s prior policy (z drawn from the prior, before any data of the new task) is
 safer than PEARL's while its adapted policy stays as good (the paper's Sec. V-B and Table I). This module decides it

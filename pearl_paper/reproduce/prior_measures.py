@@ -35,8 +35,8 @@ from sb3_pearl.pearl.diagnostics import compute_calibration
 
 N_CALIBRATION_TASKS = 8
 N_CALIBRATION_Z0 = 16
-_CALIBRATION_STREAM = 18  # the derived-seed stream of the calibration draws (issue 18)
-MEASURES_VERSION = 2  # 2: the calibration's task-blind reference (2026-12-03)
+_CALIBRATION_STREAM = 18  # the derived-seed stream of the calibration draws: apart from every other stream
+MEASURES_VERSION = 2  # 2: the calibration's task-blind reference; records of version 1 are measured again
 
 
 def scripted_prior(env_id: str, name: str) -> ScriptedPolicy:

@@ -1,4 +1,4 @@
-"""``reproduce remeasure``: a larger meta-test of committed models, without retraining (issue 36, run 1).
+"""``reproduce remeasure``: a larger meta-test of committed models, without retraining.
 
 A run's own meta-test rests on 200 k = 0 trajectories (20 held-out tasks x 10 prior draws); at violation rates of
 1-10% that is a per-seed interval of +-3 to +-4 points, as large as the effect Table I is about. This command loads a

@@ -1,4 +1,4 @@
-"""Tables II and III on Highway-Merge with the re-measured meta-test beside the runs' own (issue 36, run 1).
+"""Tables II and III on Highway-Merge with the re-measured meta-test beside the runs' own.
 
 ``reproduce remeasure`` meta-tests every finished Highway-Merge run again on Table I's larger design (100 held-out
 tasks x 10 prior draws at k = 0; :data:`~pearl_paper.experiments.table1_rules.MERGE_REMEASURE`) and writes
@@ -115,7 +115,7 @@ def remeasured_section(results_dir: str | os.PathLike[str]) -> list[str]:
         f"x {MERGE_REMEASURE.adapted_repeats} at k >= 1 a seed, common random numbers"
     )
     header: list[Any] = [
-        "### Tables II and III on Highway-Merge, re-measured (issue 36, run 1)",
+        "### Tables II and III on Highway-Merge, re-measured",
         "",
         f"Each finished run's model meta-tested again on Table I's design ({design}), without retraining "
         "(`python -m pearl_paper.reproduce remeasure`); the run's own meta-test (20 tasks x 10 prior draws) beside it "

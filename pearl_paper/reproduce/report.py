@@ -307,7 +307,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         out += ["No complete run found.", ""]
     decisions = decide(results_dir)
     if any(decision.runs[decision.variants[0]] for decision in decisions):
-        out += ["### Table I decided (issue 36): PEARL+ against PEARL by the pre-written rules", ""]
+        out += ["### Table I decided: PEARL+ against PEARL by the pre-written rules", ""]
         out += decision_section(decisions)
         if plot_decisions(decisions, Path(figures_dir) / "table1_decided.png"):
             out += [f"![k = 0 violation rate per seed, Table I decided]({figures_link.rstrip('/')}/table1_decided.png)", ""]

@@ -1,4 +1,4 @@
-"""Table I's verdicts by the pre-written rules of :mod:`pearl_paper.experiments.table1_rules` (issue 36).
+"""Table I's verdicts by the pre-written rules of :mod:`pearl_paper.experiments.table1_rules`.
 
 :func:`decide` reads the runs of each decided family (Highway-Merge: ``merge-table1``, whose PEARL runs live in
 ``merge-premise``; Walker2D-vel at 500k: ``walker-table1``, whose PEARL runs live in ``pearl-reference``), applies the
