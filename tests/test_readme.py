@@ -313,7 +313,7 @@ def test_the_thread_default_is_said_where_a_user_looks() -> None:
 def test_make_demo_defaults_are_runnable() -> None:
     """``make demo`` is ``python -m pearl_paper.demo`` with no argument, and its defaults fit: the seeds it replays are
     committed (model and result), its tasks and draws are within their committed meta-test, its train.py line parses."""
-    assert re.search(r"^demo: setup\n\t\$\(BIN\)/python -m sb3_pearl\.demo\n", (ROOT / "Makefile").read_text(), flags=re.M)
+    assert re.search(r"^demo: setup\n\t\$\(BIN\)/python -m pearl_paper\.demo\n", (ROOT / "Makefile").read_text(), flags=re.M)
     args = demo.demo_parser().parse_args([])
     runs = demo.headline_runs(demo.default_results_dir())
     assert set(runs) == set(demo.HEADLINE) and args.replay_seeds
