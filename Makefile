@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup test test-slow demo lint type bench clean
+.PHONY: setup test test-slow demo docs lint type bench clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml constraints.txt
 
 setup: $(STAMP)
 
-test: setup
+test: setup docs
 	# one module per worker at a time, dealt longest first (tests/conftest.py) instead of by test count; a test that
 	# hangs (an in-process command, a child process) fails after 10 minutes instead of blocking its worker
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --timeout 600
@@ -26,6 +26,10 @@ test-slow: setup
 
 demo: setup
 	$(BIN)/python -m pearl_paper.demo
+
+docs: setup
+	# the documentation site (Sphinx + MyST, API pages from the docstrings); a warning fails the build
+	$(BIN)/python -m sphinx -W --keep-going -q -b html docs docs/_build/html
 
 lint: setup
 	$(BIN)/ruff check .
@@ -38,4 +42,4 @@ bench: setup
 	$(BIN)/python benchmarks/throughput.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info docs/_build

@@ -17,7 +17,7 @@ from pearl_paper.experiments.spec import Claim, Criterion, Experiment, PaperCell
 from pearl_paper.reproduce.cli import main
 from pearl_paper.reproduce.competence import criterion_value, evaluate_competence
 from pearl_paper.reproduce.layout import RESULT_KEYS, parse_seeds
-from pearl_paper.reproduce.report import BEGIN, END, splice
+from pearl_paper.reproduce.report import BEGIN, END, GENERATED, splice
 from pearl_paper.reproduce.runner import held_out_record
 from pearl_paper.reproduce.stats import (
     INCONCLUSIVE,
@@ -178,13 +178,21 @@ def test_report_builds_tables_and_figures(results: Path, tmp_path: Path) -> None
     text = out.read_text()
     assert text.startswith("# Results\n\nHand-written preamble.") and text.rstrip().endswith("Hand-written tail.")
     assert "old" not in text.split(BEGIN)[1].split(END)[0]
-    assert "| PEARL+ (alpha 0) | 0 |" in text and "| PEARL+ (alpha 0.1) | 2 |" in text
-    assert "violation PEARL+ (alpha 0.1) < PEARL+ (alpha 0)" in text and "**inconclusive**" in text  # one seed
-    diagnostics = text.split("Prior diagnostics")[1].split("Wall times")[0]  # one row per diagnosed variant
+    assert "| [safe-point](experiments/safe-point.md) |" in text  # the summary's index of the experiment pages
+    page = (out.parent / "experiments" / "safe-point.md").read_text()  # the experiment's detail: a page of its own
+    assert page.startswith(GENERATED) and "| PEARL+ (alpha 0) | 0 |" not in text
+    assert "| PEARL+ (alpha 0) | 0 |" in page and "| PEARL+ (alpha 0.1) | 2 |" in page
+    assert "violation PEARL+ (alpha 0.1) < PEARL+ (alpha 0)" in page and "**inconclusive**" in page  # one seed
+    diagnostics = page.split("Prior diagnostics")[1].split("Wall times")[0]  # one row per diagnosed variant
     assert "| PEARL+ (alpha 0) |" in diagnostics and "| PEARL+ (alpha 0.1) |" in diagnostics
     figure = out.parent / "figures" / "reproduce_safe-point_safe-point_smoke.png"
     assert figure.is_file() and figure.stat().st_size > 1000
-    assert "figures/reproduce_safe-point_safe-point_smoke.png" in text
+    assert "(../figures/reproduce_safe-point_safe-point_smoke.png)" in page  # from docs/experiments/ to docs/figures/
+    # A generated page whose experiment has no result any more goes; a hand-written page there stays.
+    (out.parent / "experiments" / "gone.md").write_text(GENERATED + "\n\n# an experiment without results\n")
+    (out.parent / "experiments" / "notes.md").write_text("# hand-written\n")
+    reproduce("report", "--results-dir", str(results), "--out", str(out))
+    assert sorted(path.name for path in (out.parent / "experiments").iterdir()) == ["notes.md", "safe-point.md"]
 
 
 def _fake_result(rates: list[float], returns: list[float]) -> dict[str, Any]:
@@ -668,7 +676,7 @@ def test_the_report_draws_runs_in_progress_and_leaves_out_folders_that_are_not(t
     }
     assert groups[("pearl-reference", "cpu", "cheetah-vel")]["pearl"][1]["num_timesteps"] == 300_000
     (tmp_path / "figures").mkdir()
-    report = build_report(tmp_path, tmp_path / "figures", "figures")
+    report = str(build_report(tmp_path, tmp_path / "figures", "figures"))
     assert "No complete run found." in report and "cheetah-vel, runs in progress (budget `cpu`)" in report
     assert "| PEARL | 0 | 260000 | -260.0 |" in report and "| PEARL | 1 | 300000 | -300.0 |" in report
     assert "Published: -44 at 780,000 env steps" in report
@@ -829,12 +837,12 @@ def test_report_writes_its_file_atomically(tmp_path: Path, monkeypatch: pytest.M
     out = tmp_path / "docs" / "results.md"
     out.parent.mkdir()
     out.write_text("# Results\n\nhand-written text\n")
-    monkeypatch.setattr(report, "build_report", lambda *args: "a table\n\ud800 cut here\n")
+    monkeypatch.setattr(report, "build_report", lambda *args: report.Report("a table\n\ud800 cut here\n", {}))
     with pytest.raises(UnicodeEncodeError):
         report.write_report(tmp_path / "results", out)
     assert out.read_text() == "# Results\n\nhand-written text\n"
     assert not [path.name for path in out.parent.iterdir() if ".tmp" in path.name]
-    monkeypatch.setattr(report, "build_report", lambda *args: "a table")
+    monkeypatch.setattr(report, "build_report", lambda *args: report.Report("a table", {}))
     report.write_report(tmp_path / "results", out)
     assert "hand-written text" in out.read_text() and f"{BEGIN}\na table\n{END}" in out.read_text()
 

@@ -201,7 +201,7 @@ def test_a_learning_curve_changes_nothing_else_and_resumes(
     run = partway[("safe-point", "smoke", "safe-point")]["alpha-0.1"][0]
     assert [row["env_steps"] for row in run["curve"]] == [120, 240] and run["num_timesteps"] == 240
     (tmp_path / "figures").mkdir()
-    report = build_report(tmp_path / "cut", tmp_path / "figures", "figures")
+    report = str(build_report(tmp_path / "cut", tmp_path / "figures", "figures"))
     assert "safe-point, runs in progress (budget `smoke`)" in report, report
     assert "| PEARL+ (alpha 0.1) | 0 | 240 |" in report and "curves_partway.png" in report
     assert (tmp_path / "figures" / "reproduce_safe-point_safe-point_smoke_curves_partway.png").is_file()

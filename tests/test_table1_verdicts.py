@@ -100,7 +100,7 @@ def test_merge_reads_the_remeasured_record_and_decides_safer_and_as_good(tmp_pat
     assert decision.adapted_verdict == AS_GOOD
     assert "provisional: 4 of the 10 first seeds paired" in decision.notes[0]
     (tmp_path / "figures").mkdir()
-    text = build_report(tmp_path, tmp_path / "figures", "figures")
+    text = str(build_report(tmp_path, tmp_path / "figures", "figures"))
     assert "**safer**" in text and "(old 50.0)" in text and (tmp_path / "figures" / "table1_decided.png").is_file()
 
 

@@ -169,5 +169,16 @@ SPEED_BINS: dict[str, tuple[float, ...]] = {
     WALKER2D_VEL.name: (0.0, 1.0, float("inf")),  # Table I's shorter runs, measured the same way
     ANT3D_VEL.name: (0.0, 1.0, 2.0, float("inf")),
     ANT3D_VEL_LOW_CTRL.name: (0.0, 1.0, 2.0, float("inf")),
+    ANT3D_VEL_FORWARD.name: (0.0, 1.0, 2.0, float("inf")),
 }
 """Target-speed bin edges of the per-bin velocity error, per family."""
+
+JUDGED_RUNS: dict[str, tuple[tuple[str, str, str], ...]] = {
+    WALKER2D_VEL_LONG.name: (("PEARL", "pearl-reference", "pearl"), ("PEARL+", "walker-table1", "pearlplus")),
+    ANT3D_VEL_LONG.name: (("PEARL", "pearl-reference", "pearl"),),
+    HALF_CHEETAH_VEL.name: (("PEARL", "pearl-reference", "pearl"),),
+    ANT3D_VEL_LOW_CTRL.name: (),
+    ANT3D_VEL_FORWARD.name: (),
+}
+"""Per oracle family, the meta-learners' runs judged against the oracle: (label, experiment, variant), on the same
+family, eval seed and held-out tasks (the runs listed in the module docstring)."""

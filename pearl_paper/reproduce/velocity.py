@@ -15,6 +15,7 @@ references (standing still and the best constant velocity) from the held-out tar
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -24,11 +25,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from pearl_paper.experiments.oracle import COMPETENCE_RULES, SPEED_BINS, CompetenceRules
+from pearl_paper.experiments.oracle import COMPETENCE_RULES, JUDGED_RUNS, ORACLE, SPEED_BINS, CompetenceRules
 from pearl_paper.reproduce.layout import RESULT_FILE, read_run_result, write_json_atomic
 from sb3_pearl.envs.task_observation import task_features
 from sb3_pearl.evaluation.held_out import model_test_tasks, run_meta_test
-from sb3_pearl.evaluation.meta_test import json_value
+from sb3_pearl.evaluation.meta_test import json_value, read_json
 
 VELOCITY_FILE = "velocity_held_out.json"
 ERROR_KEY = "velocity_error"  # the velocity families' per-trajectory mean of |v - v*| (their trajectory_info_keys)
@@ -227,6 +228,82 @@ def family_verdicts(
             ok = error <= rules.oracle_ratio * oracle and error <= rules.constant_fraction * constant
             decision.competent[label] = "competent" if ok else "not competent"
     return decision
+
+
+def read_records(results_dir: str | os.PathLike[str], experiment: str, family: str, variant: str) -> list[dict[str, Any]]:
+    """
+    The velocity records of one (experiment, family, variant), in seed order (runs without one are left out).
+
+    :param results_dir: root of the results layout
+    :param experiment: experiment name
+    :param family: family name
+    :param variant: variant name
+    :return: the records
+    """
+    folder = Path(results_dir) / experiment / family / variant
+    paths = [path for path in folder.glob(f"seed*/{VELOCITY_FILE}") if path.parent.name[4:].isdigit()]
+    return [read_json(path) for path in sorted(paths, key=lambda path: int(path.parent.name[4:]))]
+
+
+def competence_section(results_dir: str | os.PathLike[str], rules: CompetenceRules = COMPETENCE_RULES) -> list[str]:
+    """
+    The markdown of competence against the oracle: per oracle family with a record, the references, the oracle's and
+    each judged meta-learner's held-out velocity error (k >= 1, per target-speed bin, k = 0), falls and return, and
+    the verdicts of :data:`~pearl_paper.experiments.oracle.COMPETENCE_RULES` (empty when no oracle record exists).
+
+    :param results_dir: root of the results layout
+    :param rules: the rules
+    :return: the lines
+    """
+    out: list[str] = []
+    for family in ORACLE.families:
+        oracle = read_records(results_dir, ORACLE.name, family.name, ORACLE.variants[0].name)
+        if not oracle:
+            continue
+        records = {"oracle": oracle}
+        records.update(
+            {label: read_records(results_dir, exp, family.name, variant) for label, exp, variant in JUDGED_RUNS[family.name]}
+        )
+        decision = family_verdicts(family.name, {label: rs for label, rs in records.items() if rs}, rules)
+        constant = decision.references["best_constant"]
+        bins = list(next(iter(decision.runs["oracle"])).by_bin)
+        if len(oracle) < len(ORACLE.seeds):
+            decision.learnable += f" (provisional: {len(oracle)} of {len(ORACLE.seeds)} oracle seeds)"
+        out += [
+            f"#### {family.title}",
+            "",
+            f"References on the 20 held-out tasks: standing still {decision.references['standing']:.3f} m/s, the best "
+            f"constant velocity {constant:.3f}. Learnable if the oracle's error <= {rules.oracle_fraction_of_constant} x "
+            f"{constant:.3f} = {rules.oracle_fraction_of_constant * constant:.3f}: **{decision.learnable}**.",
+            "",
+            f"| agent (seeds) | velocity error, k >= 1 [seed range] | {' | '.join(bins)} | k = 0 | falls k >= 1 "
+            "| return k >= 1 | verdict |",
+            "|---|---|" + "---|" * len(bins) + "---|---|---|---|",
+        ]
+        for label, runs in decision.runs.items():
+            adapted = [run.adapted for run in runs]
+            returns = [np.mean([row["return"] for row in record["rows"] if row["k"] >= 1]) for record in records[label]]
+            verdict = decision.learnable if label == "oracle" else decision.competent[label]
+            out.append(
+                f"| {'Oracle' if label == 'oracle' else label} ({len(runs)}) | {np.mean(adapted):.3f} "
+                f"[{min(adapted):.3f}, {max(adapted):.3f}] | "
+                + " | ".join(f"{np.nanmean([run.by_bin[b] for run in runs]):.3f}" for b in bins)
+                + f" | {decision.mean(label, 'prior'):.3f} | {100 * decision.mean(label, 'adapted_violation'):.1f}% "
+                f"| {np.mean(returns):.1f} | {verdict} |"
+            )
+        out += [""]
+    if not out:
+        return []
+    return [
+        "### Competence against the oracle",
+        "",
+        "Rules committed before the oracle's runs: `pearl_paper/experiments/oracle.py`. The held-out velocity error (m/s) "
+        "of each run's committed model (`python -m pearl_paper.reproduce velocity`): 20 held-out tasks x 2 repeats, "
+        f"deterministic, k = 0..{rules.n_adapt}; means over seeds. A meta-learner is competent if its error is at most "
+        f"{rules.oracle_ratio} x the oracle's and at most {rules.constant_fraction} x the best constant.",
+        "",
+        *out,
+    ]
 
 
 def measure_experiments(

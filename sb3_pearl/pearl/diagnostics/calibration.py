@@ -103,12 +103,12 @@ def compute_calibration(
     the trajectory; ``mc_return_bootstrapped`` adds ``gamma^T * V~(s_T, z0)`` when the trajectory was
     cut by the time limit (as the training target does; 0 after a true termination). A calibrated
     critic has ``bias = q - mc_return_bootstrapped`` near 0. The first-class measures (result.json
-    ``prior_critic``, ``reproduce report``) are ``bias``, ``relative_error`` = mean |Q~ - MC| over the
-    (z0, task) pairs divided by mean |MC| (scale-free: 0.25 means errors a quarter the size of the
+    ``prior_critic``, ``reproduce report``) are ``bias``, ``relative_error`` = mean ``|Q~ - MC|`` over the
+    (z0, task) pairs divided by mean ``|MC|`` (scale-free: 0.25 means errors a quarter the size of the
     returns) and ``rank_corr``, Spearman's rank correlation of Q~ and MC over every (z0, task) pair
     (does Q~ order start states and prior draws as their returns do?).
 
-    The prior critic does not see the task, so part of |Q~ - MC| is the spread of the returns over tasks (and over
+    The prior critic does not see the task, so part of ``|Q~ - MC|`` is the spread of the returns over tasks (and over
     a single stochastic trajectory), which no task-blind critic removes. ``task_blind_relative_error`` and
     ``task_blind_rank_corr`` are the same two measures for the *task-blind reference*: every (z0, task) pair
     predicted by its z0's bootstrapped return averaged over the tasks rolled out, the value a task-blind critic
