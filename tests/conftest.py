@@ -102,7 +102,7 @@ class Completed:
 
 def run_in_process(main: Callable[[list[str]], Any], *args: str, check: bool = True) -> Completed:
     """
-    Call a command-line entry point (``sb3_pearl.zoo.train``, ``enjoy``, ``sb3_pearl.reproduce.cli.main``, ...) in this
+    Call a command-line entry point (``sb3_pearl.zoo.train``, ``enjoy``, ``pearl_paper.reproduce.cli.main``, ...) in this
     process with ``args`` as its command line, and return its exit status and output.
 
     A new interpreter costs ~6 s before the first line of work (torch, rl_zoo3 and highway-env imports, and torch's

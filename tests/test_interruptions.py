@@ -207,8 +207,8 @@ def test_an_older_checkpoint_is_compacted_in_place_and_loads_the_same_buffer(tmp
     the filled rows only; the state names the new parts, the old ones are gone, and loading it gives the same buffer."""
     import pickle
 
+    from pearl_paper.reproduce.checkpoint import PART_BYTES, RunCheckpoint
     from sb3_pearl import FineTune
-    from sb3_pearl.reproduce.checkpoint import PART_BYTES, RunCheckpoint
 
     kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
     model = FineTune("MlpPolicy", NOISY_ENV, buffer_size=200_000, **kwargs).learn(150)
@@ -257,8 +257,8 @@ def test_a_buffer_that_keeps_next_observations_in_place_is_not_compacted() -> No
 def test_an_interrupted_harness_run_says_whether_a_checkpoint_exists(tmp_path: Path) -> None:
     """A child of `reproduce run` stopped before its first checkpoint promised a resume from a checkpoint that did not
     exist; it now says which of the two the same command will do."""
-    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-    from sb3_pearl.reproduce.cli import resume_promise
+    from pearl_paper.reproduce.checkpoint import RunCheckpoint
+    from pearl_paper.reproduce.cli import resume_promise
 
     assert "no checkpoint was written yet" in resume_promise(tmp_path) and "starts this run anew" in resume_promise(tmp_path)
     checkpoint = RunCheckpoint(tmp_path)
@@ -270,7 +270,7 @@ def test_an_interrupted_harness_run_says_whether_a_checkpoint_exists(tmp_path: P
 
 def test_the_demo_names_an_empty_or_foreign_remeasured_record(tmp_path: Path) -> None:
     """`make demo` on a zero-byte meta_test_large.json gave a JSON traceback naming no file."""
-    from sb3_pearl import demo
+    from pearl_paper import demo
 
     (tmp_path / "meta_test_large.json").write_text("")
     with pytest.raises(ValueError, match=r"meta_test_large.json is not valid JSON .*truncated or edited"):

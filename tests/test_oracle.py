@@ -11,12 +11,12 @@ import torch
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_pearl  # noqa: F401  (registers the families)
+from pearl_paper.reproduce.velocity import constant_references, family_verdicts, geometric_median
 from sb3_pearl import FineTune, Oracle
 from sb3_pearl.envs import FAMILIES
 from sb3_pearl.envs.task_observation import TaskObservation, task_features
 from sb3_pearl.evaluation.meta_test import meta_test
 from sb3_pearl.oracle.oracle import with_task_observation
-from sb3_pearl.reproduce.velocity import constant_references, family_verdicts, geometric_median
 
 FLAT_FAMILIES = list(FAMILIES)
 TINY = {"learning_starts": 50, "batch_size": 16, "policy_kwargs": {"net_arch": [16]}, "n_train_tasks": 4, "n_test_tasks": 2}
@@ -203,7 +203,7 @@ def test_competence_section_reports_the_oracle_and_the_judged_runs(tmp_path) -> 
     the per-bin errors and the verdicts, provisional while the oracle has fewer seeds than declared."""
     import json
 
-    from sb3_pearl.reproduce.velocity import VELOCITY_FILE, competence_section
+    from pearl_paper.reproduce.velocity import VELOCITY_FILE, competence_section
 
     assert competence_section(tmp_path) == []  # no oracle record: no section
     targets = [[0.0], [1.0], [3.0]]
@@ -232,7 +232,7 @@ def test_reproduce_velocity_measures_finished_runs_on_their_own_held_out_tasks(t
     meta-test tasks (its n_tasks), every trajectory's velocity error; a second call measures nothing again."""
     import json
 
-    from sb3_pearl.reproduce.cli import main as reproduce_main
+    from pearl_paper.reproduce.cli import main as reproduce_main
 
     args = ["--family", "walker2d-vel-long", "--seeds", "0", "--results-dir", str(tmp_path)]
     assert reproduce_main(["run", "oracle", "--budget", "smoke", *args]) == 0

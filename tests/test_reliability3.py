@@ -18,13 +18,13 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from pearl_paper.reproduce.checkpoint import RunCheckpoint
+from pearl_paper.reproduce.cli import main as reproduce_main
+from pearl_paper.reproduce.runner import RunStopped, run_one
 from sb3_pearl import PEARLPlus
 from sb3_pearl.common import atomic, persistence
 from sb3_pearl.common.callbacks import StopOnSignalCallback
 from sb3_pearl.diagnose import main as diagnose_main
-from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-from sb3_pearl.reproduce.cli import main as reproduce_main
-from sb3_pearl.reproduce.runner import RunStopped, run_one
 from sb3_pearl.zoo import MetaExperimentManager, enjoy, train
 from sb3_pearl.zoo.usage import program_name
 from tests.conftest import TINY_ZOO_PARAMS, run_in_process, write_model_zip
@@ -255,9 +255,9 @@ def test_a_write_error_keeps_the_previous_file_and_names_it(tmp_path: Path) -> N
 # ----------------------------------------------------------------------------------------------
 def test_status_calls_a_checkpoint_with_a_truncated_model_damaged(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Before: 'resumable', and the resume failed with advice for train.py users (load best_model.zip ...)."""
-    from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.reproduce.cli import resume_promise
-    from sb3_pearl.reproduce.status import run_status
+    from pearl_paper.experiments import get_experiment
+    from pearl_paper.reproduce.cli import resume_promise
+    from pearl_paper.reproduce.status import run_status
 
     folder = tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
     checkpoint = RunCheckpoint(folder)
@@ -377,10 +377,10 @@ def test_a_stopped_harness_run_saves_a_checkpoint_there_and_resumes_to_the_same_
 
 def test_sigterm_to_a_harness_child_saves_a_checkpoint_and_the_parent_says_interrupted(tmp_path: Path) -> None:
     """Before: the child stopped at once (no checkpoint in its first 10 minutes) and the parent said FAILED (exit 130)."""
-    from sb3_pearl.reproduce.ownership import lock_holder
+    from pearl_paper.reproduce.ownership import lock_holder
 
     folder = tmp_path / FOLDER
-    command = [sys.executable, "-m", "sb3_pearl.reproduce", "run", "safe-point", "--budget", "cpu", "--seeds", "0"]
+    command = [sys.executable, "-m", "pearl_paper.reproduce", "run", "safe-point", "--budget", "cpu", "--seeds", "0"]
     command += ["--family", "safe-point", "--variants", "alpha-0.1", "--results-dir", str(tmp_path)]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     parent = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

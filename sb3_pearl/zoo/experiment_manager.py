@@ -45,6 +45,7 @@ import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_pearl.budgets import model_kwargs
 from sb3_pearl.common.adaptation import has_adaptation_api
 from sb3_pearl.common.checks import check_learning_rate
 from sb3_pearl.common.persistence import IncompleteReplayBufferError
@@ -52,7 +53,6 @@ from sb3_pearl.common.threads import mark_num_threads_explicit, num_threads_flag
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.held_out import check_meta_test_settings, model_test_tasks, write_meta_test
-from sb3_pearl.experiments.budgets import model_kwargs
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags
