@@ -23,7 +23,7 @@ from sb3_pearl.envs.point_goal import PointGoalMetaEnv
 th.set_num_threads(1)
 
 # The zoo's fast SafePointGoal entry shrunk to seconds of training, as `-params` for train.py (tests/test_cli.py,
-# tests/test_newcomer.py).
+# tests/test_install.py).
 TINY_ZOO_PARAMS = [
     "num_initial_steps:30",
     "num_train_steps_per_itr:5",
@@ -172,12 +172,12 @@ class CountSteps(BaseCallback):
 # one module at a time each (`--dist loadfile`), and a long module dealt last leaves one worker idle meanwhile.
 LONGEST_MODULES = (
     "test_reproduce_ray.py",
-    "test_reliability.py",
+    "test_save_load.py",
     "test_cli.py",
     "test_reproduce.py",
     "test_reproduce_resume.py",
     "test_finetune.py",
-    "test_newcomer.py",
+    "test_install.py",
     "test_tuning_storage.py",
     "test_reproduce_ownership.py",
 )

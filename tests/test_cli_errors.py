@@ -31,7 +31,7 @@ from sb3_pearl.evaluation.figures import main as plots_main
 from sb3_pearl.zoo import enjoy, train
 from sb3_pearl.zoo.safe_config import load_run_yaml
 from tests.conftest import TINY_ZOO_PARAMS, Completed, run_in_process
-from tests.test_reliability import ENV_ID, TINY_ZOO, tiny_finetune, tiny_maml, tiny_pearl
+from tests.test_save_load import ENV_ID, TINY_ZOO, tiny_finetune, tiny_maml, tiny_pearl
 
 
 # ----------------------------------------------------------------------------------------------
