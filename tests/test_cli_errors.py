@@ -1,269 +1,30 @@
-"""Reliability, second round (issue 40; docs/reliability.md, "Second round"): data lost or misreported, and one-line
-errors for the unclear cases. Every test here failed before its fix."""
+"""The command lines' answers to mistakes (train.py, enjoy.py, diagnose, plots): one line that names the flag or file
+and the fix, exit status 2, nothing half-made left behind; and configs and run folders read without running code.
+
+docs/reliability.md lists each case and what it gets; the runs that succeed are in tests/test_cli.py."""
 
 from __future__ import annotations
 
-import json
-import multiprocessing
 import os
-import signal
-import tempfile
-import threading
-import time
+import sys
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
-import numpy as np
 import pytest
-import torch as th
 import yaml
 
-import tests.faulty_envs as faulty_envs
-from pearl_paper.reproduce.cells import load_groups
-from pearl_paper.reproduce.cli import main
-from pearl_paper.reproduce.layout import write_json_atomic
-from pearl_paper.reproduce.ownership import RunLockedError, lock_holder, run_lock
-from sb3_pearl import PEARLPlus
 from sb3_pearl.diagnose import main as diagnose_main
-from sb3_pearl.envs import FAMILIES
 from sb3_pearl.evaluation.figures import main as plots_main
 from sb3_pearl.zoo import enjoy, train
-from sb3_pearl.zoo.safe_config import load_run_yaml
-from tests.conftest import TINY_ZOO_PARAMS, Completed, run_in_process
-from tests.test_save_load import ENV_ID, TINY_ZOO, tiny_finetune, tiny_maml, tiny_pearl
-
-
-# ----------------------------------------------------------------------------------------------
-# Non-finite values are refused where they enter: predict's observation, every family's action
-# ----------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("env_id", sorted(FAMILIES))
-def test_every_family_refuses_a_non_finite_action(env_id: str) -> None:
-    env = gym.make(env_id)
-    env.reset(seed=0)
-    good = env.action_space.sample()
-    for bad in (float("nan"), float("inf")):
-        action = np.full(env.action_space.shape, bad) if env.action_space.shape else bad
-        with pytest.raises(ValueError, match=r"\.step: the action \[?(nan|inf).* is not finite: refused rather than stepped"):
-            env.step(action)
-    env.step(good)  # the env is still usable
-    env.close()
-
-
-def test_a_nan_action_is_not_counted_as_a_safe_step() -> None:
-    env = gym.make(ENV_ID)  # before: stepped, position nan, cost 0.0
-    env.reset(seed=0)
-    with pytest.raises(ValueError, match="SafePointGoalMetaEnv.step: the action"):
-        env.step(np.array([np.nan, 0.0], dtype=np.float32))
-
-
-@pytest.mark.parametrize("algo", ["pearlplus", "finetune", "maml"])
-def test_predict_refuses_a_non_finite_observation(algo: str, tiny_kwargs: dict[str, Any]) -> None:
-    model = {"pearlplus": lambda: tiny_pearl(tiny_kwargs, seed=0), "finetune": tiny_finetune, "maml": tiny_maml}[algo]()
-    model.reset_adaptation()
-    obs = np.array([np.nan, 0.0], dtype=np.float32)
-    with pytest.raises(ValueError, match=r"\.predict\(\): the observation holds a non-finite value \(\[nan, 0.0\]\)"):
-        model.predict(obs, deterministic=True)
-    action, _ = model.predict(np.zeros(2, dtype=np.float32), deterministic=True)
-    assert np.isfinite(action).all()
-
-
-@pytest.mark.parametrize("algo", ["pearlplus", "finetune", "maml"])
-def test_learn_refuses_a_negative_budget(algo: str, tiny_kwargs: dict[str, Any]) -> None:
-    model = {"pearlplus": lambda: tiny_pearl(tiny_kwargs, seed=0), "finetune": tiny_finetune, "maml": tiny_maml}[algo]()
-    with pytest.raises(ValueError, match=r"learn\(\): total_timesteps must be >= 0 \(env steps to train on\), got -1"):
-        model.learn(-1)
-    assert model.num_timesteps == 0
-
-
-# ----------------------------------------------------------------------------------------------
-# Reports: each result owns its place (no copy, no result in another run's folder)
-# ----------------------------------------------------------------------------------------------
-def _write_result(results: Path, seed: int, folder_seed: int | None = None, experiment_folder: str = "safe-point") -> Path:
-    path = results / experiment_folder / "safe-point" / "alpha-0" / f"seed{seed if folder_seed is None else folder_seed}"
-    summary = [{"k": 0, "n": 1, "return_mean": -1.0 - seed, "violation_rate": 0.0}]
-    result = {"experiment": "safe-point", "family": "safe-point", "variant": "alpha-0", "seed": seed, "budget_preset": "smoke"}
-    write_json_atomic(path / "result.json", {**result, "meta_test": {"summary": summary}})
-    return path / "result.json"
-
-
-def test_report_refuses_a_copy_of_a_result_naming_both_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    results, page = tmp_path / "results", tmp_path / "results.md"
-    real = _write_result(results, 0)
-    assert set(load_groups(results)[("safe-point", "smoke", "safe-point")]["alpha-0"]) == {0}
-    backup = _write_result(results, 0, experiment_folder="safe-point.bak")  # a backup copy beside the real folder
-    assert main(["report", "--results-dir", str(results), "--out", str(page)]) == 2
-    assert (
-        f"error: {real} and {backup} both hold the result of safe-point smoke safe-point alpha-0 seed0"
-        in capsys.readouterr().err
-    )
-    assert not page.exists()
-
-
-def test_report_and_status_refuse_a_result_in_another_runs_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    results = tmp_path / "results"
-    moved = _write_result(results, 0, folder_seed=1)  # seed1/result.json says seed 0 (beside seed0's: both files named)
-    with pytest.raises(
-        ValueError, match=rf"{moved} holds the result of another run: seed 'seed0' \(its folder says 'seed1'\)"
-    ):
-        load_groups(results)
-    assert main(["status", "safe-point", "--results-dir", str(results), "--seeds", "0-1", "--budget", "smoke"]) == 2
-    assert f"error: {moved} holds the result of another run" in capsys.readouterr().err
-
-
-def test_report_out_on_a_folder_and_status_of_a_missing_folder_are_one_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    results = tmp_path / "results"
-    _write_result(results, 0)
-    assert main(["report", "--results-dir", str(results), "--out", str(tmp_path)]) == 2
-    assert (
-        capsys.readouterr().err
-        == f"error: --out {tmp_path} is a folder: give the markdown file to write, e.g. {tmp_path / 'results.md'}\n"
-    )
-    assert not (tmp_path / "figures").exists()  # nothing written beside it
-    assert main(["status", "safe-point", "--results-dir", str(tmp_path / "nowhere")]) == 2
-    assert "error: --results-dir" in capsys.readouterr().err
-
-
-# ----------------------------------------------------------------------------------------------
-# SIGTERM and Ctrl-C alike: stopped where the run resumes exactly, buffer saved, run marked cut
-# ----------------------------------------------------------------------------------------------
-SIGNAL_ENV = "SignalSafePointGoalMeta-v0"
-
-
-def _train_signal_env(tmp_path: Path, folder: Path, *extra: str, check: bool = True) -> Completed:
-    conf = tmp_path / "conf.yml"  # iteration 0 = 4 x 30 = 120 steps, then 5 x (30 + 30) = 300
-    conf.write_text(yaml.safe_dump({SIGNAL_ENV: {**TINY_ZOO, "n_timesteps": 420, "meta_test": "dict(n_adapt=0)"}}))
-    command = ["--algo", "pearlplus", "--env", SIGNAL_ENV, "-f", str(folder), "-conf", str(conf), "--seed", "1"]
-    command += ["--num-threads", "1", "--eval-episodes", "1", "--gym-packages", "tests.faulty_envs", *extra]
-    return run_in_process(train, *command, check=check)
-
-
-def _policy_weights(path: Path) -> list[th.Tensor]:
-    return list(PEARLPlus.load(path).policy.state_dict().values())
-
-
-def test_a_signal_cuts_the_run_saves_what_the_resume_needs_and_the_resume_is_exact(tmp_path: Path) -> None:
-    faulty_envs.send_signals({})
-    _train_signal_env(tmp_path, tmp_path / "full")
-    full = _policy_weights(tmp_path / "full" / "pearlplus" / f"{SIGNAL_ENV}_1" / f"{SIGNAL_ENV}.zip")
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        name = signal.Signals(signum).name
-        logs = tmp_path / name
-        run = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
-        faulty_envs.send_signals({200: signum})  # inside iteration 1 (steps 120-420)
-        cut = _train_signal_env(tmp_path, logs, check=False)
-        assert cut.returncode == 128 + signum, cut.stdout[-2000:] + cut.stderr[-2000:]
-        assert f"Received {name}: stopping training where it resumes exactly" in cut.stdout
-        assert f"Stopped by {name} at 200 of 420 timesteps, " in cut.stdout  # ... and what was trained:
-        assert "gradient steps trained: the run is cut" in cut.stdout
-        record = json.loads((run / "interrupted.json").read_text())
-        assert record["signal"] == name and record["during"] == "training" and record["exact_resume"]
-        assert record["num_timesteps"] == 200 and record["replay_buffer"] == str(run / "replay_buffer.pkl")
-        assert not (run / "meta_test.json").exists()  # skipped for both signals
-        assert (run / "replay_buffer.pkl").is_file()  # without --save-replay-buffer: the resume needs it
-        assert record["resume"].endswith(f"--resume {run / f'{SIGNAL_ENV}.zip'}")
-        resumed = _train_signal_env(tmp_path, logs, "--resume", str(run / f"{SIGNAL_ENV}.zip"))
-        assert "Resuming at 200 timesteps: 220 to go" in resumed.stdout
-        again = _policy_weights(logs / "pearlplus" / f"{SIGNAL_ENV}_2" / f"{SIGNAL_ENV}.zip")
-        assert all(th.equal(a, b) for a, b in zip(full, again, strict=True)), name
-
-
-def test_a_signal_during_the_final_meta_test_keeps_the_model_and_writes_no_meta_test(tmp_path: Path) -> None:
-    """docs/reliability.md: a signal during the final meta-test leaves no meta_test.* (no partial numbers), the trained
-    model saved, interrupted.json saying when, and the exit code 128 + signal."""
-    faulty_envs.send_signals({420 + 10: signal.SIGTERM})  # training takes env steps 1-420; the meta-test follows
-    logs = tmp_path / "logs"
-    run = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
-    cut = _train_signal_env(tmp_path, logs, check=False)
-    assert cut.returncode == 128 + signal.SIGTERM, cut.stdout[-2000:] + cut.stderr[-2000:]
-    assert "Received SIGTERM: stopping the final meta-test (the model is saved)" in cut.stdout
-    assert "Stopped by SIGTERM during the final meta-test" in cut.stdout
-    record = json.loads((run / "interrupted.json").read_text())
-    assert record["signal"] == "SIGTERM" and record["during"] == "final meta-test" and record["num_timesteps"] == 420
-    assert not any(run.glob("meta_test.*"))
-    assert PEARLPlus.load(run / f"{SIGNAL_ENV}.zip").num_timesteps == 420
-
-
-def test_a_resume_without_its_replay_buffer_is_refused_in_one_line(tmp_path: Path) -> None:
-    model = tmp_path / "model.zip"
-    model.write_bytes(b"")  # the check comes before anything reads it
-    refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "--resume", str(model), check=False)
-    assert refused.returncode == 2
-    assert refused.stderr.strip().count("\n") == 0
-    assert f"--resume {model}: no replay buffer beside it ({tmp_path / 'replay_buffer.pkl'})" in refused.stderr
-    assert "add --resume-without-buffer to go on anyway" in refused.stderr
-
-
-# ----------------------------------------------------------------------------------------------
-# Run folders: reserved atomically; a refused set-up leaves none behind
-# ----------------------------------------------------------------------------------------------
-def _train_at_the_barrier(barrier: Any, logs: str, seed: int) -> None:  # a forked child: train.py's entry point
-    barrier.wait(timeout=60)
-    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", logs, "--seed", str(seed), "-n", "60", "--num-threads", "1"]
-    argv += ["--eval-freq", "-1", "-params", *TINY_ZOO_PARAMS]
-    os._exit(run_in_process(train, *argv, check=False).returncode)
-
-
-def test_runs_started_together_on_one_folder_each_get_their_own(tmp_path: Path) -> None:
-    context = multiprocessing.get_context("fork")
-    seeds = (1, 2, 3)
-    barrier = context.Barrier(len(seeds))
-    children = [context.Process(target=_train_at_the_barrier, args=(barrier, str(tmp_path), seed)) for seed in seeds]
-    for child in children:
-        child.start()
-    for child in children:
-        child.join(timeout=240)
-    assert [child.exitcode for child in children] == [0, 0, 0]
-    runs = sorted((tmp_path / "pearlplus").iterdir())
-    assert [run.name for run in runs] == [f"{ENV_ID}_{n}" for n in (1, 2, 3)]  # before: 2 or 3 runs in one folder
-    found = set()
-    for run in runs:
-        seed = load_run_yaml(run / ENV_ID / "args.yml")["seed"]
-        found.add(seed)
-        assert PEARLPlus.load(run / f"{ENV_ID}.zip").seed == seed
-        monitor = (run / "0.monitor.csv").read_text().splitlines()
-        assert sum(line.startswith("#") for line in monitor) == 1  # one writer
-    assert found == set(seeds)
-
-
-def test_a_refused_hyperparameter_leaves_no_run_folder(tmp_path: Path) -> None:
-    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path), "--seed", "1", "-params", "latent_dim:-3"]
-    refused = run_in_process(train, *argv, check=False)
-    assert refused.returncode == 2 and "latent_dim" in refused.stderr
-    assert not any((tmp_path / "pearlplus").iterdir())  # before: <EnvId>_1 with its monitor file and config
-
-
-# ----------------------------------------------------------------------------------------------
-# The harness's run.lock: removed when the run ends, exclusive while it runs
-# ----------------------------------------------------------------------------------------------
-def test_the_run_lock_is_removed_when_the_run_ends_and_stays_exclusive(tmp_path: Path) -> None:
-    lock = tmp_path / "run.lock"
-    with run_lock(tmp_path):
-        assert lock.read_text() == f"{os.getpid()}\n" and lock_holder(tmp_path) == os.getpid()
-    assert not lock.exists() and lock_holder(tmp_path) is None  # before: left behind by every run
-    with pytest.raises(RuntimeError, match="the run failed"), run_lock(tmp_path):
-        raise RuntimeError("the run failed")
-    assert not lock.exists()
-    holding, release = threading.Event(), threading.Event()
-
-    def waiter() -> None:  # opens the lock file while the first owner holds it, then waits for it
-        with run_lock(tmp_path, wait_s=10):
-            holding.set()
-            release.wait(10)
-
-    thread = threading.Thread(target=waiter)
-    with run_lock(tmp_path):
-        thread.start()
-        time.sleep(0.3)
-    assert holding.wait(10)
-    assert lock_holder(tmp_path) == os.getpid()  # the waiter holds the file at the path, not the one removed
-    with pytest.raises(RunLockedError), run_lock(tmp_path, wait_s=0.0):
-        pass  # so a third process is refused
-    release.set()
-    thread.join(10)
-    assert not lock.exists()
+from sb3_pearl.zoo.safe_config import UnsafeConfigError, load_run_yaml, parse_dict_string
+from tests.conftest import (
+    ENV_ID,
+    TINY_ZOO_PARAMS,
+    _read_only_for_root,
+    run_in_process,
+    tiny_pearl,
+)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -328,25 +89,166 @@ def test_a_truncated_model_is_named_by_enjoy_and_diagnose(
     assert expected in capsys.readouterr().err  # the same words as enjoy's, not "not a PEARL / PEARL+ model"
 
 
-def test_save_to_a_path_it_cannot_write_names_the_destination(
-    tmp_path: Path, tiny_kwargs: dict[str, Any], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    model = tiny_pearl(tiny_kwargs, seed=0)
-    (tmp_path / "file").write_text("")
-    with pytest.raises(OSError, match=rf"cannot write {tmp_path / 'file' / 'model.zip'}: {tmp_path / 'file'} is a file"):
-        model.save(tmp_path / "file" / "model.zip")
-
-    def refused(*args: Any, **kwargs: Any) -> Any:  # what a folder without write permission gives (tests run as root)
-        raise PermissionError(13, "Permission denied", str(tmp_path / ".model.x1y2.tmp.zip"))
-
-    monkeypatch.setattr(tempfile, "mkstemp", refused)
-    with pytest.raises(PermissionError, match=rf"cannot write {tmp_path / 'model.zip'}: Permission denied in {tmp_path}$"):
-        model.save(tmp_path / "model.zip")
-
-
 def test_plots_names_a_truncated_meta_test_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "meta_test.json").write_text('{"config": {"algo": "pearl"}, "summ')
     with pytest.raises(SystemExit) as exit_info:
         plots_main([str(tmp_path), "-o", str(tmp_path / "out.png")])
     assert exit_info.value.code == 2
     assert f"{tmp_path / 'meta_test.json'} is not valid JSON" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------------
+# Configs and run folders never run code
+# ----------------------------------------------------------------------------------------------
+def _zoo_run_folder(root: Path, tiny_kwargs: dict[str, Any]) -> Path:
+    """A run folder in rl_zoo3's layout, its YAML written the way rl_zoo3 writes it (yaml.dump of OrderedDicts)."""
+    run_dir = root / "pearlplus" / f"{ENV_ID}_1"
+    tiny_pearl(tiny_kwargs, seed=0).save(run_dir / f"{ENV_ID}.zip")
+    (run_dir / ENV_ID).mkdir()
+    args = OrderedDict(sorted({"algo": "pearlplus", "env": ENV_ID, "env_kwargs": None, "seed": 1, "gym_packages": []}.items()))
+    config = OrderedDict([("n_envs", 1), ("policy", "MlpPolicy"), ("policy_kwargs", "dict(net_arch=[32, 32])")])
+    (run_dir / ENV_ID / "args.yml").write_text(yaml.dump(args))
+    (run_dir / ENV_ID / "config.yml").write_text(yaml.dump(config))
+    return run_dir
+
+
+def test_run_folder_yaml_is_read_safely(tmp_path: Path) -> None:
+    written = OrderedDict([("env", ENV_ID), ("train_freq", (1, "episode")), ("env_kwargs", {"a": [1.5, None]})])
+    path = tmp_path / "args.yml"
+    path.write_text(yaml.dump(written))
+    assert "!!python/object/apply:collections.OrderedDict" in path.read_text()  # what rl_zoo3 writes
+    assert load_run_yaml(path) == written
+    path.write_text('!!python/object/apply:os.system ["echo pwned"]\n')
+    with pytest.raises(UnsafeConfigError, match="refusing the YAML tag '!!python/object/apply:os.system'"):
+        load_run_yaml(path)
+    path.write_text("env: !!python/name:os.system\n")
+    with pytest.raises(UnsafeConfigError, match="python/name:os.system"):
+        load_run_yaml(path)
+
+
+@pytest.mark.parametrize("poisoned", ["args.yml", "config.yml"])
+def test_enjoy_refuses_a_run_folder_that_would_run_code(tmp_path: Path, tiny_kwargs: dict[str, Any], poisoned: str) -> None:
+    run_dir = _zoo_run_folder(tmp_path / "logs", tiny_kwargs)
+    marker = tmp_path / "pwned"
+    (run_dir / ENV_ID / poisoned).write_text(f'!!python/object/apply:os.system ["touch {marker}"]\n')
+    with pytest.raises(SystemExit, match="refusing the YAML tag '!!python/object/apply:os.system'"):
+        enjoy(["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "logs"), "--no-render", "--n-tasks", "1"])
+    assert not marker.exists()
+
+
+def test_meta_test_strings_are_parsed_without_eval(tmp_path: Path) -> None:
+    assert parse_dict_string("dict(n_adapt=3, deterministic=False)", "meta_test") == {"n_adapt": 3, "deterministic": False}
+    assert parse_dict_string("{'n_tasks': None}", "meta_test") == {"n_tasks": None}
+    marker = tmp_path / "pwned"
+    for text in (f"__import__('os').system('touch {marker}')", f"dict(n_adapt=__import__('os').system('touch {marker}'))"):
+        with pytest.raises(ValueError, match="meta_test: .* is not a dict of literals"):
+            parse_dict_string(text, "meta_test")
+    assert not marker.exists()
+    with pytest.raises(ValueError, match=r"meta_test: cannot parse 'dict\(n_adapt=' \(.*\); write a dict of literals"):
+        parse_dict_string("dict(n_adapt=", "meta_test")
+    with pytest.raises(ValueError, match="meta_test must be a dict"):
+        parse_dict_string("[1, 2]", "meta_test")
+
+
+# ----------------------------------------------------------------------------------------------
+# A model of another task family: the message names the env id to pass
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("flag", ["-i", "--resume"])
+def test_train_py_with_a_model_of_another_family_names_the_env_to_pass(
+    tmp_path: Path, point_goal_model: Path, flag: str
+) -> None:
+    """Guards against: the constructor's advice ('give it an env of that family'), which a train.py user cannot follow."""
+    extra = ["--resume-without-buffer"] if flag == "--resume" else []
+    proc = run_in_process(
+        train,
+        *("--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "logs"), "-n", "200", flag, str(point_goal_model)),
+        *extra,
+        *("-params", *TINY_ZOO_PARAMS),
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    line = proc.stderr.strip().splitlines()[-1]
+    assert f"{flag} {point_goal_model} was not trained on {ENV_ID}: the model was trained on PointGoalMetaEnv tasks" in line
+    assert line.endswith("; pass --env PointGoalMeta-v0"), line
+    assert not list((tmp_path / "logs" / "pearlplus").iterdir())  # refused before anything was trained or kept
+
+
+def test_diagnose_with_a_model_of_another_family_names_the_env_id_to_pass(
+    point_goal_model: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Guards against: the constructor's ValueError as a traceback."""
+    with pytest.raises(SystemExit) as exit_info:
+        diagnose_main([str(point_goal_model), "--env-id", ENV_ID, "--n-tasks", "1"])
+    assert exit_info.value.code == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"{point_goal_model} was not trained on {ENV_ID}: the model was trained on PointGoalMetaEnv tasks" in line
+    assert line.endswith("; pass --env-id PointGoalMeta-v0"), line
+
+
+def test_train_py_log_folder_that_root_cannot_write_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Guards against: accepted, then a PermissionError / OSError traceback from os.makedirs."""
+    locked = tmp_path / "mount"
+    locked.mkdir()
+    _read_only_for_root(monkeypatch, locked)
+    refused = run_in_process(
+        train, "--algo", "pearlplus", "--env", ENV_ID, "-f", str(locked / "logs"), "-n", "60", check=False
+    )
+    lines = [line for line in refused.stderr.strip().splitlines() if line.strip()]
+    assert refused.returncode == 2 and len(lines) == 1, lines
+    assert f"-f {locked / 'logs'}: {locked} is not writable (Read-only file system)" in lines[0], lines
+    assert list(locked.iterdir()) == []
+
+
+@pytest.mark.skipif(
+    not os.path.isdir("/sys") or os.access("/sys", os.W_OK) is False, reason="needs /sys, writable per os.access"
+)
+def test_a_log_folder_under_sys_is_one_line(tmp_path: Path) -> None:
+    """The real case: root's os.access says /sys is writable; creating a folder there fails (EPERM or EROFS)."""
+    target = f"/sys/sb3-pearl-logs-{os.getpid()}"
+    refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "-f", target, "-n", "60", check=False)
+    lines = [line for line in refused.stderr.strip().splitlines() if line.strip()]
+    assert refused.returncode == 2 and len(lines) == 1 and f"-f {target}: /sys is not writable (" in lines[0], lines
+
+
+# ----------------------------------------------------------------------------------------------
+# User errors: one line, exit status 2
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["--env", "SafePointGoalMta-v0"],
+            "--env SafePointGoalMta-v0: not found in gym registry, did you mean SafePointGoalMeta-v0?",
+        ),
+        (["--env", ENV_ID, "-params", "prior_coef:abc"], "-params prior_coef:abc: the value 'abc' is not a Python expression"),
+        (["--env", ENV_ID, "-params", "prior_coef"], "-params prior_coef: expected key:value"),
+        (["--env", ENV_ID, "-params", "warp_factor:9"], "PEARLPlus does not take the hyperparameter(s) 'warp_factor' given"),
+        (["--env", ENV_ID, "-params", "latnt_dim:5"], "'latnt_dim' (did you mean latent_dim?) given in -params (latnt_dim)"),
+        (["--env", ENV_ID, "-n", "1.5"], "-n takes a whole number of env steps, got '1.5'"),
+        (
+            ["--env", "PointGoalMeta-v0", "--budget", "cpu"],
+            "--budget cpu: the cpu preset has no pearlplus entry for PointGoalMeta-v0",
+        ),
+    ],
+)
+def test_train_user_errors_are_one_line(
+    args: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sys, "argv", ["train.py"])
+    with pytest.raises(SystemExit) as exit_info:
+        train(["--algo", "pearlplus", "-f", str(tmp_path), "-n", "10", *args])
+    assert exit_info.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("train.py: error: ") and message in lines[0], lines
+    assert "hyperparameter" not in message or len(lines[0]) < 200, lines[0]  # a key typo: no list of every accepted key
+
+
+def test_enjoy_user_error_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sys, "argv", ["enjoy.py"])
+    with pytest.raises(SystemExit) as exit_info:
+        enjoy(["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "nowhere"), "--no-render"])
+    assert exit_info.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("enjoy.py: error: ") and "folder was not found" in lines[0], lines

@@ -1,21 +1,25 @@
-"""Reliability (issue 10): atomic writes, checked loads, safe configs, validated inputs, SIGTERM, divergence guard.
+"""Save, load and resume, for every algorithm: a loaded model acts as the saved one; writes are atomic (a killed
+save, a failed write or a full disk keeps the previous file); loads check what they read; a resume from a save or a
+checkpoint continues bit for bit.
 
-docs/reliability.md lists the bad inputs and faults these tests try and what each gets.
+docs/reliability.md lists the faults these tests try and what each gets.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import io
 import multiprocessing
 import os
 import random
 import signal
-import subprocess
-import sys
+import tempfile
 import time
 import zipfile
-from collections import OrderedDict
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import gymnasium as gym
 import numpy as np
@@ -26,35 +30,151 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
 
 import tests.faulty_envs  # noqa: F401  (registers the failing families)
-from sb3_pearl import MAML, PEARL, FineTune, PEARLPlus
+from sb3_pearl import MAML, PEARL, FineTune, Oracle, PEARLPlus
+from sb3_pearl.common import atomic, persistence
 from sb3_pearl.common.atomic import atomic_write, sb3_file_path
-from sb3_pearl.common.divergence import DivergenceError, NonFiniteEnvError
-from sb3_pearl.envs import FAMILIES
 from sb3_pearl.evaluation.meta_test import MetaTestResult
-from sb3_pearl.zoo import enjoy, train
-from sb3_pearl.zoo.safe_config import UnsafeConfigError, load_run_yaml, parse_dict_string
-from tests.conftest import Completed, run_in_process
+from sb3_pearl.zoo import train
+from sb3_pearl.zoo.usage import program_name
+from tests.conftest import (
+    ENV_ID,
+    TINY_ZOO,
+    TINY_ZOO_PARAMS,
+    Completed,
+    CountSteps,
+    make_discrete_env,
+    run_in_process,
+    tiny_finetune,
+    tiny_maml,
+    tiny_pearl,
+)
+from tests.test_finetune import probe_actions, rollout, tiny_model  # Fine-Tune's own save / load test
+from tests.test_maml import make_model  # MAML's own save / load test
+from tests.test_oracle import TINY  # the oracle's own save / load test
 
-ENV_ID = "SafePointGoalMeta-v0"
+ALGOS = ("pearl", "pearlplus", "finetune", "maml", "oracle")
 
 
-def tiny_pearl(tiny_kwargs: dict[str, Any], cls: type[PEARL] = PEARLPlus, env: str = ENV_ID, **overrides: Any) -> PEARL:
-    kwargs = {**tiny_kwargs, **overrides}
-    if cls is PEARL:
-        kwargs.pop("prior_critic_arch", None)
-    return cls("MlpPolicy", env, **kwargs)
+def smoke_model(algo: str, tiny_kwargs: dict[str, Any]) -> Any:
+    """An untrained smoke-size model of ``algo`` on :data:`ENV_ID` (seed 0) and the budget that trains it a little."""
+    if algo in ("pearl", "pearlplus"):
+        return tiny_pearl(tiny_kwargs, PEARL if algo == "pearl" else PEARLPlus, seed=0), 300  # 240 initial + training
+    if algo == "oracle":
+        return Oracle("MlpPolicy", ENV_ID, n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0), 100
+    return (tiny_finetune(), 100) if algo == "finetune" else (tiny_maml(), 1)  # MAML: one meta-iteration at least
 
 
-def tiny_finetune(env: str = ENV_ID, **overrides: Any) -> FineTune:
-    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
-    kwargs.update(overrides)
-    return FineTune("MlpPolicy", env, **kwargs)
+def assert_same(saved: Any, loaded: Any, where: str) -> None:
+    """Tensors, arrays, numbers and the containers of them (state dicts, optimizer states) are equal, bit for bit."""
+    if isinstance(saved, th.Tensor):
+        assert isinstance(loaded, th.Tensor) and th.equal(saved.cpu(), loaded.cpu()), where
+    elif isinstance(saved, np.ndarray):
+        np.testing.assert_array_equal(saved, loaded, err_msg=where)
+    elif isinstance(saved, dict):
+        assert saved.keys() == loaded.keys(), where
+        for key in saved:
+            assert_same(saved[key], loaded[key], f"{where}[{key!r}]")
+    elif isinstance(saved, (list, tuple)):
+        assert len(saved) == len(loaded), where
+        for index, (a, b) in enumerate(zip(saved, loaded)):
+            assert_same(a, b, f"{where}[{index}]")
+    else:
+        assert saved == loaded, where
 
 
-def tiny_maml(env: str = ENV_ID, **overrides: Any) -> MAML:
-    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, meta_batch_size=2, episodes_per_task=1, seed=0)
-    kwargs.update(overrides)
-    return MAML("MlpPolicy", env, **kwargs)
+def buffer_rows(buffer: Any, where: str = "replay_buffer") -> dict[str, np.ndarray]:
+    """The rows in use of every array of a replay buffer, by attribute path: what a saved buffer holds (rows past a
+    buffer's size are free space, zeros or stale). PEARL's buffer holds per-task RL and context buffers, whose arrays
+    are (task, row, ...) with a size per task; SB3's holds (row, env, ...) with one size."""
+    if hasattr(buffer, "rl") and hasattr(buffer, "context"):
+        return {**buffer_rows(buffer.rl, f"{where}.rl"), **buffer_rows(buffer.context, f"{where}.context")}
+    per_task = isinstance(buffer.size, np.ndarray)
+    rows = {}
+    for name, value in vars(buffer).items():
+        if not isinstance(value, np.ndarray):
+            continue
+        if per_task and name not in ("pos", "size"):
+            for task, size in enumerate(buffer.size):
+                rows[f"{where}.{name}[{task}]"] = value[task, :size]
+        else:
+            rows[f"{where}.{name}"] = value if per_task else value[: buffer.size()]
+    return rows
+
+
+def assert_same_buffers(saved: Any, loaded: Any) -> None:
+    """The rows in use of two replay buffers are equal, array by array (and every buffer holds some)."""
+    saved_rows, loaded_rows = buffer_rows(saved), buffer_rows(loaded)
+    assert saved_rows and saved_rows.keys() == loaded_rows.keys()
+    assert all(len(rows) for rows in saved_rows.values())  # learn() filled every buffer
+    for name, rows in saved_rows.items():
+        np.testing.assert_array_equal(rows, loaded_rows[name], err_msg=name)
+
+
+def act_after_adaptation(model: Any, observations: np.ndarray, transitions: list[tuple[Any, ...]]) -> list[np.ndarray]:
+    """The adaptation API as the meta-test calls it: deterministic actions on ``observations`` with the prior (k = 0),
+    then after ``observe`` of ``transitions`` and ``adapt`` (k = 1)."""
+    model.set_random_seed(3)  # PEARL draws z from the prior and the posterior; Fine-Tune's adaptation samples batches
+    model.reset_adaptation()
+    actions = [model.predict(observations, deterministic=True)[0]]
+    for transition in transitions:
+        model.observe(*transition)
+    model.adapt()
+    actions.append(model.predict(observations, deterministic=True)[0])
+    return actions
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_save_load(algo: str, tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    """Every algorithm, learnt a little at smoke size, saved and loaded (no env): the same parameters and optimizer
+    states, the same deterministic actions before and after adapting to the same observed transitions, and (off-policy
+    algorithms) the same replay buffer."""
+    model, budget = smoke_model(algo, tiny_kwargs)
+    model.learn(budget)
+    model.save(tmp_path / "model.zip")
+    loaded = type(model).load(tmp_path / "model.zip")
+    assert type(loaded) is type(model)
+    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
+    assert_same(model.get_parameters(), loaded.get_parameters(), "get_parameters()")
+
+    rng = np.random.default_rng(0)
+    shape = model.observation_space.shape
+    observations = rng.uniform(-1, 1, size=(16, *shape)).astype(np.float32)
+    transitions = []
+    for step in range(10):
+        obs, next_obs = rng.uniform(-1, 1, size=(2, *shape)).astype(np.float32)
+        action = rng.uniform(model.action_space.low, model.action_space.high).astype(np.float32)
+        transitions.append((obs, action, -1.0 + 0.1 * step, next_obs, step == 9))
+    expected = act_after_adaptation(model, observations, transitions)
+    got = act_after_adaptation(loaded, observations, transitions)
+    for k, (a, b) in enumerate(zip(expected, got)):
+        np.testing.assert_array_equal(a, b, err_msg=f"deterministic actions after {k} adaptation(s)")
+
+    if algo == "maml":  # on-policy: no replay buffer
+        assert not hasattr(model, "save_replay_buffer")
+        return
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert_same_buffers(model.replay_buffer, loaded.replay_buffer)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_save_load_to_file_objects(algo: str, tiny_kwargs: dict[str, Any]) -> None:
+    """SB3's ``save`` / ``load`` and ``save_replay_buffer`` / ``load_replay_buffer`` also take open files (an
+    ``io.BytesIO`` here), not only paths, for every algorithm."""
+    model, budget = smoke_model(algo, tiny_kwargs)
+    model.learn(budget)
+    file = io.BytesIO()
+    model.save(file)
+    file.seek(0)
+    loaded = type(model).load(file)
+    assert_same(model.get_parameters(), loaded.get_parameters(), "get_parameters()")
+    if algo == "maml":
+        return
+    file = io.BytesIO()
+    model.save_replay_buffer(file)
+    file.seek(0)
+    loaded.load_replay_buffer(file)
+    assert_same_buffers(model.replay_buffer, loaded.replay_buffer)
 
 
 def no_temporary_files(folder: Path) -> bool:
@@ -62,7 +182,7 @@ def no_temporary_files(folder: Path) -> bool:
 
 
 # ----------------------------------------------------------------------------------------------
-# 1. Atomic writes
+# Atomic writes
 # ----------------------------------------------------------------------------------------------
 def _save_forever(model: PEARL, path: str) -> None:  # runs in a forked child until killed
     while True:
@@ -136,190 +256,8 @@ def test_meta_test_files_are_written_atomically(tmp_path: Path, monkeypatch: pyt
 
 
 # ----------------------------------------------------------------------------------------------
-# 2. Configs and run folders never run code
+# Checked loads: a file that does not fit is refused with its reason
 # ----------------------------------------------------------------------------------------------
-def _zoo_run_folder(root: Path, tiny_kwargs: dict[str, Any]) -> Path:
-    """A run folder in rl_zoo3's layout, its YAML written the way rl_zoo3 writes it (yaml.dump of OrderedDicts)."""
-    run_dir = root / "pearlplus" / f"{ENV_ID}_1"
-    tiny_pearl(tiny_kwargs, seed=0).save(run_dir / f"{ENV_ID}.zip")
-    (run_dir / ENV_ID).mkdir()
-    args = OrderedDict(sorted({"algo": "pearlplus", "env": ENV_ID, "env_kwargs": None, "seed": 1, "gym_packages": []}.items()))
-    config = OrderedDict([("n_envs", 1), ("policy", "MlpPolicy"), ("policy_kwargs", "dict(net_arch=[32, 32])")])
-    (run_dir / ENV_ID / "args.yml").write_text(yaml.dump(args))
-    (run_dir / ENV_ID / "config.yml").write_text(yaml.dump(config))
-    return run_dir
-
-
-def test_run_folder_yaml_is_read_safely(tmp_path: Path) -> None:
-    written = OrderedDict([("env", ENV_ID), ("train_freq", (1, "episode")), ("env_kwargs", {"a": [1.5, None]})])
-    path = tmp_path / "args.yml"
-    path.write_text(yaml.dump(written))
-    assert "!!python/object/apply:collections.OrderedDict" in path.read_text()  # what rl_zoo3 writes
-    assert load_run_yaml(path) == written
-    path.write_text('!!python/object/apply:os.system ["echo pwned"]\n')
-    with pytest.raises(UnsafeConfigError, match="refusing the YAML tag '!!python/object/apply:os.system'"):
-        load_run_yaml(path)
-    path.write_text("env: !!python/name:os.system\n")
-    with pytest.raises(UnsafeConfigError, match="python/name:os.system"):
-        load_run_yaml(path)
-
-
-@pytest.mark.parametrize("poisoned", ["args.yml", "config.yml"])
-def test_enjoy_refuses_a_run_folder_that_would_run_code(tmp_path: Path, tiny_kwargs: dict[str, Any], poisoned: str) -> None:
-    run_dir = _zoo_run_folder(tmp_path / "logs", tiny_kwargs)
-    marker = tmp_path / "pwned"
-    (run_dir / ENV_ID / poisoned).write_text(f'!!python/object/apply:os.system ["touch {marker}"]\n')
-    with pytest.raises(SystemExit, match="refusing the YAML tag '!!python/object/apply:os.system'"):
-        enjoy(["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "logs"), "--no-render", "--n-tasks", "1"])
-    assert not marker.exists()
-
-
-def test_meta_test_strings_are_parsed_without_eval(tmp_path: Path) -> None:
-    assert parse_dict_string("dict(n_adapt=3, deterministic=False)", "meta_test") == {"n_adapt": 3, "deterministic": False}
-    assert parse_dict_string("{'n_tasks': None}", "meta_test") == {"n_tasks": None}
-    marker = tmp_path / "pwned"
-    for text in (f"__import__('os').system('touch {marker}')", f"dict(n_adapt=__import__('os').system('touch {marker}'))"):
-        with pytest.raises(ValueError, match="meta_test: .* is not a dict of literals"):
-            parse_dict_string(text, "meta_test")
-    assert not marker.exists()
-    with pytest.raises(ValueError, match=r"meta_test: cannot parse 'dict\(n_adapt=' \(.*\); write a dict of literals"):
-        parse_dict_string("dict(n_adapt=", "meta_test")
-    with pytest.raises(ValueError, match="meta_test must be a dict"):
-        parse_dict_string("[1, 2]", "meta_test")
-
-
-# ----------------------------------------------------------------------------------------------
-# 3. Validated inputs: each an error naming the argument, before anything is built
-# ----------------------------------------------------------------------------------------------
-NO_ENV = "NoSuchEnvIsBuiltBeforeTheArgumentCheck-v0"  # gym.make would fail: the argument check must come first
-
-
-@pytest.mark.parametrize(
-    "kwargs, match",
-    [
-        ({"prior_coef": float("nan")}, r"prior_coef must be a finite number >= 0 .*got nan"),
-        ({"prior_coef": float("inf")}, r"prior_coef must be a finite number >= 0"),
-        ({"kl_weight": -1}, r"kl_weight must be a finite number >= 0 .*got -1"),
-        ({"n_test_tasks": -1}, r"n_test_tasks must be an integer >= 0 .*got -1"),
-        ({"num_train_steps_per_itr": -5}, r"num_train_steps_per_itr must be an integer >= 0 .*got -5"),
-        ({"encoder_arch": [0]}, r"encoder_arch must be a list of hidden-layer sizes, each an integer >= 1 .*got \[0\]"),
-        ({"prior_critic_arch": [16, -1]}, r"prior_critic_arch must be a list of hidden-layer sizes"),
-        ({"policy_kwargs": {"net_arch": [0]}}, r"policy_kwargs\['net_arch'\] must be a list"),
-        ({"gamma": 1.5}, r"gamma must be a finite number in \(0, 1\] .*got 1.5"),
-        ({"gamma": 0.0}, r"gamma must be a finite number in \(0, 1\]"),
-        ({"tau": -0.1}, r"tau must be a finite number in \[0, 1\]"),
-        ({"ent_coef": -1.0}, r"ent_coef must be a finite number >= 0"),
-        ({"ent_coef": "auto_-1"}, r"ent_coef must be a number >= 0, 'auto' or 'auto_<init>'"),
-        ({"reward_scale": 0.0}, r"reward_scale must be a finite number > 0"),
-        ({"learning_rate": float("nan")}, r"learning_rate must be a finite number >= 0"),
-        ({"batch_size": 0}, r"batch_size must be an integer >= 1"),
-        ({"num_tasks_sample": 0}, r"num_tasks_sample must be an integer >= 1"),
-        ({"meta_batch": 2.5}, r"meta_batch must be an integer >= 1 .*got 2.5"),
-        ({"use_bf16": "yes"}, r"use_bf16 must be True, False or 'force'"),
-    ],
-)
-def test_pearl_arguments_are_checked_first(kwargs: dict[str, Any], match: str) -> None:
-    with pytest.raises(ValueError, match=match):
-        PEARLPlus("MlpPolicy", NO_ENV, **kwargs)
-
-
-@pytest.mark.parametrize(
-    "kwargs, match",
-    [
-        ({"batch_size": 0}, r"batch_size must be an integer >= 1 .*got 0"),
-        ({"gamma": 2.0}, r"gamma must be a finite number in \(0, 1\]"),
-        ({"tau": -1.0}, r"tau must be a finite number in \[0, 1\]"),
-        ({"ent_coef": -0.5}, r"ent_coef must be a finite number >= 0"),
-        ({"n_test_tasks": -1}, r"n_test_tasks must be an integer >= 0"),
-        ({"gradient_steps": -2}, r"gradient_steps must be an integer >= 0, or -1"),
-        ({"policy_kwargs": {"net_arch": {"pi": [64], "qf": [0]}}}, r"policy_kwargs\['net_arch'\]\['qf'\] must be a list"),
-    ],
-)
-def test_finetune_arguments_are_checked_first(kwargs: dict[str, Any], match: str) -> None:
-    with pytest.raises(ValueError, match=match):
-        FineTune("MlpPolicy", NO_ENV, **kwargs)
-
-
-@pytest.mark.parametrize(
-    "kwargs, match",
-    [
-        ({"gamma": 1.01}, r"gamma must be a finite number in \(0, 1\]"),
-        ({"inner_lr": float("nan")}, r"inner_lr must be a finite number >= 0"),
-        ({"n_test_tasks": -1}, r"n_test_tasks must be an integer >= 0"),
-        ({"gae_lambda": 1.5}, r"gae_lambda must be a finite number in \[0, 1\]"),
-    ],
-)
-def test_maml_arguments_are_checked_first(kwargs: dict[str, Any], match: str) -> None:
-    with pytest.raises(ValueError, match=match):
-        MAML("MlpPolicy", NO_ENV, **kwargs)
-
-
-@pytest.mark.parametrize("env_id", sorted(FAMILIES))
-def test_set_task_checks_types_and_values_on_every_family(env_id: str) -> None:
-    env = gym.make(env_id).unwrapped
-    good = env.get_task()
-    env.set_task(good)  # a sampled task is accepted
-    for key, value in good.items():
-        if isinstance(value, list):
-            wrong_type, wrong_shape = "abc", [*value, 1.0]
-            nan_value = [float("nan")] * len(value)
-        else:
-            wrong_type, wrong_shape = str(value), [value, value]  # Walker {"velocity": [1, 2]}
-            nan_value = float("nan")
-        for bad in (nan_value, wrong_type, wrong_shape):
-            with pytest.raises(ValueError, match=rf"set_task: {key} must be .*as from sample_tasks\(\)"):
-                env.set_task({**good, key: bad})
-            assert env.task_error({**good, key: bad}) is not None
-    assert env.get_task() == good  # refused tasks change nothing
-    env.close()
-
-
-def test_safe_point_refuses_a_hazard_over_the_start() -> None:
-    env = gym.make(ENV_ID).unwrapped
-    with pytest.raises(ValueError, match=r"the hazard \[0.1, 0.0\] covers the start \(0, 0\)"):
-        env.set_task({"goal": [0.0, 1.0], "hazard": [0.1, 0.0]})
-
-
-def test_test_tasks_are_checked_at_construction(tiny_kwargs: dict[str, Any]) -> None:
-    good = gym.make(ENV_ID).unwrapped.sample_tasks(2, seed=0)
-    with pytest.raises(ValueError, match=r"test_tasks\[1\] = \{'goal': \[1.0, 0.5, 0.2\].*is not a task of this env"):
-        tiny_pearl(tiny_kwargs, test_tasks=[good[0], {"goal": [1.0, 0.5, 0.2], "hazard": [0.6, 0.0]}])
-    with pytest.raises(ValueError, match=r"train_tasks\[0\] = \{'velocity': 1.0\} is not a task of this env"):
-        tiny_finetune(train_tasks=[{"velocity": 1.0}])
-    with pytest.raises(ValueError, match=r"test_tasks\[0\] .*goal must be a list of 2 values"):
-        tiny_maml(test_tasks=[{"goal": [0.0], "hazard": [0.6, 0.0]}])
-
-
-def test_observe_clips_box_actions_and_refuses_bad_ones(tiny_kwargs: dict[str, Any]) -> None:
-    obs = np.zeros(2, dtype=np.float32)
-    far = np.array([5.0, -5.0], dtype=np.float32)  # 50x the box [-0.1, 0.1]^2
-    pearl = tiny_pearl(tiny_kwargs, seed=0)
-    pearl.observe(obs, far, -1.0, obs, False)
-    assert np.array_equal(pearl._adapt_context[-1][1], [1.0, -1.0])  # stored as the clipped action the env executed
-    finetune = tiny_finetune()
-    finetune.observe(obs, far, -1.0, obs, False)
-    assert finetune._adapt_buffer is not None and np.array_equal(finetune._adapt_buffer.actions[0, 0], [1.0, -1.0])
-    maml = tiny_maml()
-    maml.observe(obs, far, -1.0, obs, False)
-    assert np.array_equal(maml._current_episode[1][-1], [1.0, -1.0])
-    for model in (pearl, finetune, maml):
-        with pytest.raises(ValueError, match=r"observe\(\): reward holds a non-finite value"):
-            model.observe(obs, far, float("nan"), obs, False)
-        with pytest.raises(ValueError, match=r"observe\(\): the action \[nan, 0.0\] is not finite"):
-            model.observe(obs, np.array([np.nan, 0.0]), -1.0, obs, False)
-
-
-def test_observe_refuses_a_discrete_action_out_of_range(tiny_kwargs: dict[str, Any]) -> None:
-    from tests.conftest import make_discrete_env
-
-    model = PEARLPlus("MlpPolicy", make_vec_env(make_discrete_env), **tiny_kwargs)
-    obs = np.zeros(2, dtype=np.float32)
-    model.observe(obs, 4, -1.0, obs, False)
-    for action in (5, -1):
-        with pytest.raises(ValueError, match=rf"observe\(\): Discrete action {action} is out of range \[0, 5\)"):
-            model.observe(obs, action, -1.0, obs, False)
-
-
 def test_load_refuses_files_that_do_not_fit(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
     plus = tiny_pearl(tiny_kwargs, seed=0)
     plus.save(tmp_path / "plus.zip")
@@ -437,159 +375,7 @@ def test_replay_buffer_of_other_tasks_is_refused(tmp_path: Path, tiny_kwargs: di
 
 
 # ----------------------------------------------------------------------------------------------
-# 4. SIGTERM and exceptions during train.py save the model and say where
-# ----------------------------------------------------------------------------------------------
-ROOT = Path(__file__).resolve().parent.parent
-TINY_ZOO: dict[str, Any] = {
-    "n_timesteps": 1_000_000,
-    "policy": "MlpPolicy",
-    "n_envs": 1,
-    "num_initial_steps": 30,
-    "num_train_steps_per_itr": 5,
-    "num_steps_prior": 30,
-    "num_extra_rl_steps_posterior": 30,
-    "n_train_tasks": 4,
-    "n_test_tasks": 2,
-    "meta_batch": 2,
-    "batch_size": 16,
-    "embedding_batch_size": 8,
-    "latent_dim": 3,
-    "encoder_arch": [16],
-    "prior_critic_arch": [16],
-    "policy_kwargs": "dict(net_arch=[32, 32])",
-}
-
-
-def start_train(folder: Path, env_id: str, *extra: str) -> subprocess.Popen[str]:
-    conf = folder / "conf.yml"
-    conf.write_text(yaml.safe_dump({env_id: TINY_ZOO}))
-    command = [sys.executable, str(ROOT / "train.py"), "--algo", "pearlplus", "--env", env_id, "-f", str(folder / "logs")]
-    command += ["-conf", str(conf), "--seed", "1", "--num-threads", "1", "--gym-packages", "tests.faulty_envs", *extra]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "MPLBACKEND": "Agg"}
-    return subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
-def test_sigterm_saves_the_model_and_says_where(tmp_path: Path) -> None:
-    proc = start_train(tmp_path, ENV_ID)
-    assert proc.stdout is not None
-    output = []
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:  # training has started once the logger printed its first iteration
-        line = proc.stdout.readline()
-        output.append(line)
-        if "n_updates" in line or not line:
-            break
-    assert any("n_updates" in line for line in output), "".join(output)
-    proc.send_signal(signal.SIGTERM)
-    rest, _ = proc.communicate(timeout=60)
-    text = "".join(output) + rest
-    model_path = tmp_path / "logs" / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip"
-    assert proc.returncode == 128 + signal.SIGTERM, text[-3000:]
-    assert "Received SIGTERM: stopping training where it resumes exactly" in text
-    assert f"the model is saved to {model_path} with its replay buffer" in text
-    assert PEARLPlus.load(model_path).num_timesteps > 0
-
-
-def test_exception_during_training_saves_the_model_and_reraises(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    env_id = "FailingSafePointGoalMeta-v0"
-    conf = tmp_path / "conf.yml"
-    conf.write_text(yaml.safe_dump({env_id: TINY_ZOO}))
-    argv = ["--algo", "pearlplus", "--env", env_id, "-f", str(tmp_path / "logs"), "-conf", str(conf), "--seed", "1"]
-    with pytest.raises(RuntimeError, match=r"the simulator crashed \(on purpose\)"):  # re-raised, so the exit status is 1
-        train([*argv, "--num-threads", "1", "--gym-packages", "tests.faulty_envs"])  # train.py's entry point, in-process
-    model_path = tmp_path / "logs" / "pearlplus" / f"{env_id}_1" / f"{env_id}.zip"
-    captured = capsys.readouterr()
-    text = captured.out + captured.err
-    assert f"Training stopped by RuntimeError at 200 timesteps: the model reached so far is saved to {model_path}" in text
-    assert PEARLPlus.load(model_path).num_timesteps == 200
-
-
-# ----------------------------------------------------------------------------------------------
-# 5. Divergence guard
-# ----------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("what, shown", [("reward", r"reward \(nan\)"), ("obs", r"observation \(\[inf, inf\]\)")])
-@pytest.mark.parametrize("algo", ["pearlplus", "finetune", "maml"])
-def test_non_finite_env_output_names_env_task_and_step(algo: str, what: str, shown: str, tiny_kwargs: dict[str, Any]) -> None:
-    value = float("nan") if what == "reward" else float("inf")
-    env = make_vec_env("NonFiniteSafePointGoalMeta-v0", n_envs=2, env_kwargs=dict(what=what, value=value, fail_after=40))
-    model = {
-        "pearlplus": lambda: PEARLPlus("MlpPolicy", env, seed=0, **tiny_kwargs),
-        "finetune": lambda: tiny_finetune(env),  # type: ignore[arg-type]
-        "maml": lambda: tiny_maml(env),  # type: ignore[arg-type]
-    }[algo]()
-    with pytest.raises(
-        NonFiniteEnvError,
-        match=rf"NonFiniteSafePointGoalMeta-v0 returned a non-finite {shown} at timestep \d+ \(env index \d, task \{{'goal'",
-    ):
-        model.learn(400)
-
-
-def all_finite(model: PEARL) -> bool:
-    tensors = list(model.policy.parameters())
-    for optimizer in model.policy.optimizers():
-        tensors += [v for state in optimizer.state.values() for v in state.values() if th.is_tensor(v)]
-    return all(bool(th.isfinite(t).all()) for t in tensors)
-
-
-def test_non_finite_losses_are_skipped_and_repeated_ones_stop_training(tiny_kwargs: dict[str, Any]) -> None:
-    # One reward of 1e30 (finite, so no env error): its critic targets overflow; those steps are skipped and the
-    # Adam state stays finite; the poisoned context keeps coming back, so training stops with the cause named.
-    env = gym.make("NonFiniteSafePointGoalMeta-v0", value=1e30, fail_after=100)
-    model = PEARLPlus("MlpPolicy", env, seed=0, **tiny_kwargs)
-    with (
-        pytest.warns(UserWarning, match="skipped a gradient step with non-finite critic_loss=inf"),
-        pytest.raises(
-            DivergenceError, match=r"10 gradient steps in a row had a non-finite loss .*critic_loss=inf.*reward_scale"
-        ),
-    ):
-        model.learn(2000)
-    assert model._update_guard.skipped >= 10 and all_finite(model)
-
-
-def test_huge_learning_rate_stops_with_a_message_instead_of_a_torch_error(tiny_kwargs: dict[str, Any]) -> None:
-    model = tiny_pearl(tiny_kwargs, seed=0, learning_rate=1e6)
-    with (
-        pytest.warns(UserWarning, match="skipped a gradient step"),
-        pytest.raises(DivergenceError, match=r"Likely fixes: a lower learning_rate.*learning_rate=1000000.0"),
-    ):
-        model.learn(3000)
-    assert all(bool(th.isfinite(p).all()) for p in model.policy.parameters())
-
-
-def test_guard_skips_a_step_with_a_non_finite_gradient_only(tiny_kwargs: dict[str, Any]) -> None:
-    model = tiny_pearl(tiny_kwargs, seed=0)
-    model.learn(100)
-    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
-    hook = model.actor.mu.weight.register_hook(lambda grad: grad * float("inf"))
-    with pytest.warns(UserWarning, match="finite losses but a non-finite gradient"):
-        model.train(gradient_steps=3, batch_size=8)
-    hook.remove()
-    assert model._update_guard.skipped == 3 and model._update_guard.consecutive == 3
-    assert all(th.equal(v, before[k]) for k, v in model.policy.state_dict().items())  # nothing stepped
-    model.train(gradient_steps=1, batch_size=8)
-    assert model._update_guard.consecutive == 0 and all_finite(model)
-
-
-# ----------------------------------------------------------------------------------------------
-# 6. bfloat16 only where it is native
-# ----------------------------------------------------------------------------------------------
-def test_bf16_falls_back_to_float32_without_native_support(
-    monkeypatch: pytest.MonkeyPatch, tiny_kwargs: dict[str, Any]
-) -> None:
-    from sb3_pearl.common import precision
-
-    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset({"avx2", "fma"}))  # an AVX2-only CPU
-    with pytest.warns(UserWarning, match=r"no native bfloat16 .*1.5-18x slower.*trains in float32.*use_bf16='force'"):
-        model = tiny_pearl(tiny_kwargs, seed=0, use_bf16=True, device="cpu")
-    assert model.use_bf16 is True and not model._bf16_enabled
-    assert tiny_pearl(tiny_kwargs, seed=0, use_bf16="force", device="cpu")._bf16_enabled
-    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset({"avx2", "avx512_bf16"}))
-    assert tiny_pearl(tiny_kwargs, seed=0, use_bf16=True, device="cpu")._bf16_enabled
-    assert precision.native_bf16(th.device("cpu"))[0]
-
-
-# ----------------------------------------------------------------------------------------------
-# 7. Exact resume
+# Exact resume
 # ----------------------------------------------------------------------------------------------
 NOISY_ENV = "NoisyResetSafePointGoalMeta-v0"  # its resets draw from the env's np_random: the env RNG must resume too
 
@@ -746,21 +532,6 @@ def test_train_py_resume_of_a_fine_tune_checkpoint_is_bit_identical(tmp_path: Pa
     assert all(th.equal(x, y) for x, y in zip(a.policy.state_dict().values(), b.policy.state_dict().values()))
 
 
-# ----------------------------------------------------------------------------------------------
-# 8. Weak cases: one line each
-# ----------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("cls", [PEARL, PEARLPlus])
-def test_observe_refuses_a_reward_that_is_not_a_scalar(cls: type[PEARL], tiny_kwargs: dict[str, Any]) -> None:
-    model = tiny_pearl(tiny_kwargs, cls=cls, seed=0)
-    obs = np.zeros(2, dtype=np.float32)
-    with pytest.raises(ValueError, match=r"observe\(\): reward must be a scalar \(one transition\), got shape \(2,\)"):
-        model.observe(obs, np.zeros(2), np.array([1.0, 2.0]), obs, False)
-    assert model._adapt_context == []
-    model.observe(obs, np.zeros(2), np.array([1.0]), obs, False)  # one reward in an array of one is one transition
-
-
 def test_load_replay_buffer_of_a_model_zip_says_what_to_load(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
     model = tiny_pearl(tiny_kwargs, seed=0)
     model.save(tmp_path / "model.zip")
@@ -776,16 +547,313 @@ def test_load_replay_buffer_of_a_model_zip_says_what_to_load(tmp_path: Path, tin
         finetune.load_replay_buffer(tmp_path / "finetune.zip")
 
 
-def test_reproduce_seeds_beyond_numpys_bound_are_refused(tmp_path: Path) -> None:
-    from pearl_paper.reproduce.cli import main
-    from pearl_paper.reproduce.layout import parse_seeds
+# ----------------------------------------------------------------------------------------------
+# Failed saves and resumes: one line naming the file or the flag
+# ----------------------------------------------------------------------------------------------
+def test_a_resume_without_its_replay_buffer_is_refused_in_one_line(tmp_path: Path) -> None:
+    model = tmp_path / "model.zip"
+    model.write_bytes(b"")  # the check comes before anything reads it
+    refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "--resume", str(model), check=False)
+    assert refused.returncode == 2
+    assert refused.stderr.strip().count("\n") == 0
+    assert f"--resume {model}: no replay buffer beside it ({tmp_path / 'replay_buffer.pkl'})" in refused.stderr
+    assert "add --resume-without-buffer to go on anyway" in refused.stderr
 
-    assert parse_seeds("4294967295") == [4294967295]
-    for text in ("4294967296", "0,4294967290-4294967296"):
-        with pytest.raises(ValueError, match=r"--seeds: seeds must be integers in \[0, 4294967295\], got 4294967296"):
-            parse_seeds(text)
-    argv = ["status", "safe-point", "--seeds", "4294967296", "--results-dir", str(tmp_path)]
-    proc = run_in_process(main, *argv, check=False)
-    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
-        "error: --seeds: seeds must be integers in [0, 4294967295], got 4294967296 (in '4294967296')"
+
+def test_save_to_a_path_it_cannot_write_names_the_destination(
+    tmp_path: Path, tiny_kwargs: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model = tiny_pearl(tiny_kwargs, seed=0)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(OSError, match=rf"cannot write {tmp_path / 'file' / 'model.zip'}: {tmp_path / 'file'} is a file"):
+        model.save(tmp_path / "file" / "model.zip")
+
+    def refused(*args: Any, **kwargs: Any) -> Any:  # what a folder without write permission gives (tests run as root)
+        raise PermissionError(13, "Permission denied", str(tmp_path / ".model.x1y2.tmp.zip"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refused)
+    with pytest.raises(PermissionError, match=rf"cannot write {tmp_path / 'model.zip'}: Permission denied in {tmp_path}$"):
+        model.save(tmp_path / "model.zip")
+
+
+# ----------------------------------------------------------------------------------------------
+# An empty checkpoint replay buffer: the advice works, --resume-without-buffer goes on
+# ----------------------------------------------------------------------------------------------
+def test_resume_with_an_empty_checkpoint_buffer_names_it_and_the_flag_works(tmp_path: Path) -> None:
+    """Guards against: '... not a complete replay buffer pickle ...; train without it', also with --resume-without-buffer."""
+    logs = tmp_path / "logs"
+    base = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(logs), "--seed", "1", "--eval-freq", "1000"]
+    run_in_process(train, *base, "-n", "300", "--save-freq", "100", "-params", *TINY_ZOO_PARAMS)
+    run = logs / "pearlplus" / f"{ENV_ID}_1"
+    checkpoint, buffer = run / "rl_model_120_steps.zip", run / "rl_model_replay_buffer_120_steps.pkl"
+    buffer.write_bytes(b"")
+    resume = [*base, "-n", "300", "--resume", str(checkpoint)]
+    refused = run_in_process(train, *resume, "-params", *TINY_ZOO_PARAMS, check=False)
+    problem = f"{buffer} is not a complete replay buffer pickle (0 bytes: the file is empty)"
+    assert refused.returncode == 2 and refused.stderr.strip().splitlines()[-1].endswith(
+        f"{problem}: add --resume-without-buffer to resume from an empty buffer (the run then differs from the "
+        "uninterrupted one)"
+    )
+    resumed = run_in_process(train, *resume, "--resume-without-buffer", "-params", *TINY_ZOO_PARAMS)
+    assert f"Warning: {problem}: going on from an empty replay buffer (--resume-without-buffer)" in resumed.stdout
+    assert "Resuming at 120 timesteps: 180 to go" in resumed.stdout
+    assert (logs / "pearlplus" / f"{ENV_ID}_2" / f"{ENV_ID}.zip").is_file()
+    # rl_zoo3's own <folder>/replay_buffer.pkl, loaded with -i, is checked the same way
+    pickle_path = run / "replay_buffer.pkl"
+    pickle_path.write_bytes(b"\x80\x05")
+    model = str(run / f"{ENV_ID}.zip")
+    refused = run_in_process(train, *base, "-n", "100", "-i", model, "-params", *TINY_ZOO_PARAMS, check=False)
+    assert refused.returncode == 2 and refused.stderr.strip().splitlines()[-1].endswith(
+        f"{pickle_path} is not a complete replay buffer pickle (EOFError: Ran out of input): move it away to continue "
+        "training from an empty buffer"
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Disk full at train.py's final save: one line naming the file; nothing older overwritten
+# ----------------------------------------------------------------------------------------------
+def test_a_full_disk_at_the_final_save_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Guards against: three to five chained tracebacks (zipfile, atomic_write, rl_zoo3) naming no file."""
+    real_atomic_write = atomic.atomic_write
+    model_file = tmp_path / "logs" / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip"
+
+    @contextlib.contextmanager
+    def full_disk(path: str | os.PathLike[str], mode: str = "wb", **kwargs: Any) -> Iterator[IO[Any]]:
+        with real_atomic_write(path, mode, **kwargs) as file:
+            if Path(path) == model_file:
+                file.write(b"PK\x03\x04 half a zip")
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as a write to the full device raises it
+            yield file
+
+    monkeypatch.setattr(persistence, "atomic_write", full_disk)
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path / "logs"), "-n", "200", "--eval-freq", "1000"]
+    proc = run_in_process(train, *argv, "-params", *TINY_ZOO_PARAMS, check=False)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert proc.stderr.strip().splitlines() == [
+        f"{program_name()}: error: saving the trained model failed: cannot write {model_file}: No space left on device "
+        "(ENOSPC); "
+        "nothing older was overwritten (every save writes a temporary file and renames it into place, and the "
+        "temporary file was removed): free space (or choose another -f) and train again"
     ]
+    assert not model_file.exists() and not [path for path in model_file.parent.iterdir() if ".tmp" in path.name]
+
+
+def test_a_write_error_keeps_the_previous_file_and_names_it(tmp_path: Path) -> None:
+    """What the message promises: the previous file is kept, the temporary one removed, the error names the file."""
+    destination = tmp_path / "model.zip"
+    destination.write_bytes(b"the previous model")
+    with (
+        pytest.raises(OSError, match=rf"cannot write {destination}: No space left on device$") as raised,
+        atomic.atomic_write(destination) as file,
+    ):
+        file.write(b"half a zip")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    assert raised.value.errno == errno.ENOSPC
+    assert destination.read_bytes() == b"the previous model" and os.listdir(tmp_path) == ["model.zip"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Each algorithm's own save / load: what its zip holds beyond the parameters
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("discrete", [False, True])
+def test_pearlplus_save_load_equivalence(tmp_path: Path, discrete: bool, tiny_kwargs: dict[str, Any]) -> None:
+    env = make_discrete_env() if discrete else gym.make("SafePointGoalMeta-v0")
+    # the learned entropy coefficient (saved as a tensor with its optimizer) and the fixed default
+    model = PEARLPlus("MlpPolicy", env, seed=0, ent_coef=1.0 if discrete else "auto", **tiny_kwargs)
+    model.learn(400)
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    loaded = PEARLPlus.load(tmp_path / "model.zip")  # no env needed
+    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
+    obs = th.rand(32, 2) * 2 - 1
+    z = th.randn(32, model.latent_dim)
+    assert th.equal(model.policy.act(obs, z, deterministic=True), loaded.policy.act(obs, z, deterministic=True))
+    x = th.cat([obs, z], dim=-1)
+    if not discrete:
+        x = th.cat([x, th.rand(32, 2) * 2 - 1], dim=-1)
+    assert model.prior_critic is not None and loaded.prior_critic is not None
+    assert th.equal(model.prior_critic(x), loaded.prior_critic(x))
+    assert th.equal(model.critic_target(x), loaded.critic_target(x))
+    for name in ("encoder", "actor", "critic", "prior_critic"):
+        saved = getattr(model, name).optimizer.state_dict()["state"]
+        restored = getattr(loaded, name).optimizer.state_dict()["state"]
+        assert th.equal(saved[0]["exp_avg"], restored[0]["exp_avg"]), name
+    if discrete:
+        assert loaded.log_ent_coef is None and th.equal(loaded.ent_coef_tensor, model.ent_coef_tensor)
+    else:
+        assert loaded.log_ent_coef is not None and th.equal(loaded.log_ent_coef, model.log_ent_coef)
+    # Adaptation gives the same posterior from the same context.
+    for m in (model, loaded):
+        m.reset_adaptation()
+        for t in range(5):
+            m.observe(
+                np.array([0.1 * t, 0.0]), 1 if discrete else np.array([0.05, -0.05]), -1.0 + t, np.array([0.1, 0.2]), False
+            )
+    assert all(th.allclose(a, b) for a, b in zip(model.infer_posterior(), loaded.infer_posterior()))
+    # Buffers round trip, and training goes on with the env set again.
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    np.testing.assert_array_equal(loaded.replay_buffer.rl.observations, model.replay_buffer.rl.observations)
+    np.testing.assert_array_equal(loaded.replay_buffer.context.size, model.replay_buffer.context.size)
+    loaded.set_env(env)
+    loaded.learn(100, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 500
+
+
+def test_load_rejects_another_env(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **tiny_kwargs)
+    model.save(tmp_path / "model.zip")
+    with pytest.raises(ValueError, match="Action spaces do not match|Observation spaces do not match"):
+        PEARLPlus.load(tmp_path / "model.zip", env=make_vec_env(make_discrete_env))
+
+
+def test_saved_replay_buffer_holds_only_used_rows(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, buffer_size=1_000_000, **tiny_kwargs)
+    model.learn(300)
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    assert (tmp_path / "buffer.pkl").stat().st_size < 1_000_000  # 4 tasks x 1e6 rows would be > 100 MB
+    model.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert model.replay_buffer.rl.observations.shape == (4, 1_000_000, 2)
+    model.learn(100, reset_num_timesteps=False)
+
+
+@pytest.mark.parametrize("discrete", [False, True])
+def test_finetune_save_load_equivalence(tmp_path: Path, discrete: bool) -> None:
+    model = tiny_model(make_discrete_env() if discrete else "PointGoalMeta-v0", learn=200)
+    if not discrete:  # save while adapted: the zip holds the pretrained model only
+        rollout(model, model.test_tasks[0], deterministic=False)
+        model.adapt()
+    model.save(tmp_path / "model.zip")
+    loaded = FineTune.load(tmp_path / "model.zip")
+    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
+    assert loaded.max_episode_steps == model.max_episode_steps == 20
+    assert loaded.adapt_gradient_steps == model.adapt_gradient_steps
+    assert type(loaded.policy) is type(model.policy)
+    # Saving forgot the adaptation: the loaded model acts like the pretrained policy.
+    model.reset_adaptation()
+    np.testing.assert_array_equal(probe_actions(loaded), probe_actions(model))
+    if discrete:
+        return
+    # Optimizer states and the entropy coefficient were saved too: the same fine-tuning gives the same policy.
+    results = []
+    for m in (model, loaded):
+        m.reset_adaptation()
+        m.set_random_seed(3)
+        rollout(m, model.test_tasks[0], deterministic=False)
+        m.adapt()
+        results.append(probe_actions(m))
+    np.testing.assert_allclose(results[0], results[1], atol=1e-6)
+
+
+def test_learn_save_load_identical_actions(tmp_path: Any) -> None:
+    model = make_model(n_envs=2)
+    callback = CountSteps()
+    model.learn(1, callback=callback)  # one meta-iteration: 2 phases x 4 tasks x 4 episodes x 20 steps
+    assert model.num_timesteps == 2 * 4 * 4 * 20
+    assert callback.calls == 2 * 4 * 4 * 20 // 2
+    model.save(tmp_path / "maml.zip")
+    loaded = MAML.load(tmp_path / "maml.zip")
+    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
+    assert loaded.max_episode_steps == 20
+    obs = np.random.default_rng(0).uniform(-1, 1, size=(16, 2)).astype(np.float32)
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+    # with an env (another n_envs): training continues, on the saved task lists
+    resumed = MAML.load(tmp_path / "maml.zip", env=make_vec_env("PointGoalMeta-v0", n_envs=1, seed=1))
+    assert resumed.train_tasks == model.train_tasks
+    resumed.learn(1, reset_num_timesteps=False)
+    assert resumed.num_timesteps == 2 * model.num_timesteps
+
+
+def test_oracle_learns_saves_loads_and_acts_identically(tmp_path) -> None:
+    model = Oracle("MlpPolicy", "PointGoalMeta-v0", seed=0, **TINY)
+    assert model.observation_space.shape == (4,)  # position (2) + goal (2)
+    model.learn(300)
+    path = tmp_path / "oracle.zip"
+    model.save(path)
+    loaded = Oracle.load(path)
+    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
+    obs = np.stack([model.observation_space.sample() for _ in range(8)])
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+    # a Fine-Tune zip is not an oracle's (its policy sees no task)
+    finetune = FineTune("MlpPolicy", "PointGoalMeta-v0", seed=0, **TINY)
+    finetune.save(tmp_path / "finetune.zip")
+    with pytest.raises(ValueError, match="holds a FineTune model, not a Oracle one"):
+        Oracle.load(tmp_path / "finetune.zip")
+
+
+# ----------------------------------------------------------------------------------------------
+# Replay buffers saved compact: the filled rows only
+# ----------------------------------------------------------------------------------------------
+
+
+def test_a_part_filled_sac_buffer_is_saved_compact_and_loads_to_the_same_rows(tmp_path: Path) -> None:
+    """SB3 pickles all buffer_size rows of a replay buffer; the project's save keeps the filled ones (a checkpoint of a
+    part-way 500k Ant run was 1.8 GB), and the load restores the full allocation, rows past pos zero as SB3 makes them."""
+    from sb3_pearl import FineTune
+
+    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
+    model = FineTune("MlpPolicy", NOISY_ENV, buffer_size=100_000, **kwargs)  # far more rows than are filled
+    model.learn(150)
+    model.save_replay_buffer(tmp_path / "buffer")
+    full = model.replay_buffer
+    assert (tmp_path / "buffer.pkl").stat().st_size < 0.05 * full.observations.nbytes
+    other = FineTune("MlpPolicy", NOISY_ENV, buffer_size=100_000, **kwargs)
+    other.load_replay_buffer(tmp_path / "buffer.pkl")
+    buffer = other.replay_buffer
+    assert (buffer.pos, buffer.full, buffer.buffer_size) == (full.pos, full.full, full.buffer_size)
+    for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
+        np.testing.assert_array_equal(getattr(buffer, name), getattr(full, name))
+    assert full.observations.shape[0] == 100_000  # the model's own buffer was left whole by the save
+
+
+def test_an_older_checkpoint_is_compacted_in_place_and_loads_the_same_buffer(tmp_path: Path) -> None:
+    """`reproduce compact`: a checkpoint written with the whole allocation (before compact buffers) is rewritten with
+    the filled rows only; the state names the new parts, the old ones are gone, and loading it gives the same buffer."""
+    import pickle
+
+    from pearl_paper.reproduce.checkpoint import PART_BYTES, RunCheckpoint
+    from sb3_pearl import FineTune
+
+    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
+    model = FineTune("MlpPolicy", NOISY_ENV, buffer_size=200_000, **kwargs).learn(150)
+    checkpoint = RunCheckpoint(tmp_path)
+    files = checkpoint.save_model(model, None)
+    whole = pickle.dumps(model.replay_buffer)  # as an older save wrote it: every allocated row
+    assert len(whole) > PART_BYTES / 10
+    files = {key: name for key, name in files.items() if not key.startswith("replay")}
+    files.update(checkpoint._write_parts("replay_150.pkl", whole, "replay"))
+    checkpoint.write_state({"phase": "train", "files": files, "num_timesteps": 150})
+    before, after = checkpoint.compact_replay()
+    assert before == len(whole) and after < before / 20
+    state = checkpoint.read_state()
+    assert state is not None and "replay_150.pkl" not in state["files"].values()
+    assert not (checkpoint.folder / "replay_150.pkl").exists() and any(checkpoint.folder.glob("replay_150_compact*"))
+    resumed = checkpoint.load_model(state, FineTune, gym.make(NOISY_ENV))
+    for name in ("observations", "actions", "rewards", "dones"):
+        np.testing.assert_array_equal(getattr(resumed.replay_buffer, name), getattr(model.replay_buffer, name))
+    files_before = dict(checkpoint.read_state()["files"])  # type: ignore[index]
+    mtimes = {name: (checkpoint.folder / name).stat().st_mtime_ns for name in files_before.values()}
+    again, again_after = checkpoint.compact_replay()  # compact already: nothing is rewritten
+    assert again == again_after and checkpoint.read_state()["files"] == files_before  # type: ignore[index]
+    assert all((checkpoint.folder / name).stat().st_mtime_ns == mtime for name, mtime in mtimes.items())
+
+
+def test_a_buffer_that_keeps_next_observations_in_place_is_not_compacted() -> None:
+    """With optimize_memory_usage SB3 keeps the last next observation in observations[pos]: cutting at pos would lose
+    it, so such a buffer is pickled whole."""
+    from stable_baselines3.common.buffers import ReplayBuffer
+
+    from sb3_pearl.common.persistence import compact_buffer
+
+    env = gym.make(NOISY_ENV)
+    buffer = ReplayBuffer(
+        100, env.observation_space, env.action_space, optimize_memory_usage=True, handle_timeout_termination=False
+    )
+    for _ in range(3):
+        obs = env.observation_space.sample()[None]
+        buffer.add(obs, obs + 1, env.action_space.sample()[None], np.zeros(1), np.zeros(1), [{}])
+    assert compact_buffer(buffer) is buffer
+    plain = ReplayBuffer(100, env.observation_space, env.action_space)
+    compact = compact_buffer(plain)
+    assert compact is not plain and compact_buffer(compact) is compact  # compacting twice changes nothing
