@@ -52,6 +52,9 @@ from tests.test_finetune import probe_actions, rollout, tiny_model  # Fine-Tune'
 from tests.test_maml import make_model  # MAML's own save / load test
 from tests.test_oracle import TINY  # the oracle's own save / load test
 
+# ----------------------------------------------------------------------------------------------
+# Every algorithm, as SB3's test_save_load.py: saved, loaded, the same parameters, actions and replay buffer
+# ----------------------------------------------------------------------------------------------
 ALGOS = ("pearl", "pearlplus", "finetune", "maml", "oracle")
 
 
