@@ -1,9 +1,12 @@
-"""Shared fixtures: tiny PEARL / PEARL+ configurations that train in a second on the CPU."""
+"""Shared fixtures and helpers: tiny configurations of every algorithm that train in a second on the CPU, the entry
+points called in-process, and the fault helpers several test modules use."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
+import os
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,12 +21,13 @@ from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback
 
 import sb3_pearl  # noqa: F401  (registers the envs)
+from sb3_pearl import MAML, PEARL, FineTune, PEARLPlus
 from sb3_pearl.envs.point_goal import PointGoalMetaEnv
 
 th.set_num_threads(1)
 
 # The zoo's fast SafePointGoal entry shrunk to seconds of training, as `-params` for train.py (tests/test_cli.py,
-# tests/test_newcomer.py).
+# tests/test_install.py).
 TINY_ZOO_PARAMS = [
     "num_initial_steps:30",
     "num_train_steps_per_itr:5",
@@ -168,16 +172,83 @@ class CountSteps(BaseCallback):
         return True
 
 
+# The task family most tests use, and a tiny model of each algorithm on it (``tiny_kwargs`` for PEARL / PEARL+).
+ENV_ID = "SafePointGoalMeta-v0"
+
+
+def tiny_pearl(tiny_kwargs: dict[str, Any], cls: type[PEARL] = PEARLPlus, env: str = ENV_ID, **overrides: Any) -> PEARL:
+    kwargs = {**tiny_kwargs, **overrides}
+    if cls is PEARL:
+        kwargs.pop("prior_critic_arch", None)
+    return cls("MlpPolicy", env, **kwargs)
+
+
+def tiny_finetune(env: str = ENV_ID, **overrides: Any) -> FineTune:
+    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
+    kwargs.update(overrides)
+    return FineTune("MlpPolicy", env, **kwargs)
+
+
+def tiny_maml(env: str = ENV_ID, **overrides: Any) -> MAML:
+    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, meta_batch_size=2, episodes_per_task=1, seed=0)
+    kwargs.update(overrides)
+    return MAML("MlpPolicy", env, **kwargs)
+
+
+# A tiny PEARL+ entry of a train.py hyperparameter file (``-conf``), for runs of train.py that a test stops or fails.
+TINY_ZOO: dict[str, Any] = {
+    "n_timesteps": 1_000_000,
+    "policy": "MlpPolicy",
+    "n_envs": 1,
+    "num_initial_steps": 30,
+    "num_train_steps_per_itr": 5,
+    "num_steps_prior": 30,
+    "num_extra_rl_steps_posterior": 30,
+    "n_train_tasks": 4,
+    "n_test_tasks": 2,
+    "meta_batch": 2,
+    "batch_size": 16,
+    "embedding_batch_size": 8,
+    "latent_dim": 3,
+    "encoder_arch": [16],
+    "prior_critic_arch": [16],
+    "policy_kwargs": "dict(net_arch=[32, 32])",
+}
+
+
+@pytest.fixture(scope="module")
+def point_goal_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A PointGoal model: the same spaces and task keys as SafePointGoal, another family."""
+    path = tmp_path_factory.mktemp("point_goal") / "model.zip"
+    PEARLPlus("MlpPolicy", "PointGoalMeta-v0", n_train_tasks=2, n_test_tasks=1, seed=0).save(path)
+    return path
+
+
+# An output folder that os.access calls writable (root) but that cannot be written: the commands must try, not ask.
+def _read_only_for_root(monkeypatch: pytest.MonkeyPatch, folder: Path) -> None:
+    """``folder`` as root sees a read-only mount: ``os.access`` says writable, creating anything in it fails."""
+    real_mkdir = os.mkdir
+
+    def mkdir(path: str | os.PathLike[str], *args: int, **kwargs: int) -> None:
+        if Path(path).parent == folder:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        real_mkdir(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+    assert os.access(folder, os.W_OK | os.X_OK)
+
+
 # The modules that take longest (Ray, harness runs, train.py processes) first: `make test` runs the suite on 2 workers,
 # one module at a time each (`--dist loadfile`), and a long module dealt last leaves one worker idle meanwhile.
 LONGEST_MODULES = (
     "test_reproduce_ray.py",
-    "test_reliability.py",
+    "test_save_load.py",
     "test_cli.py",
-    "test_reproduce.py",
     "test_reproduce_resume.py",
+    "test_reproduce.py",
     "test_finetune.py",
-    "test_newcomer.py",
+    "test_interruptions.py",
+    "test_install.py",
     "test_tuning_storage.py",
     "test_reproduce_ownership.py",
 )

@@ -80,7 +80,7 @@ _steps_taken = [0]
 class SignalSafePointGoalEnv(NoisyResetSafePointGoalEnv):
     """
     NoisyReset SafePoint whose step number ``n`` (counted over the process) sends ``SIGNALS[n]`` to the process itself:
-    a SIGTERM / Ctrl-C at a chosen step, for the interruption tests (``tests/test_reliability2.py``).
+    a SIGTERM / Ctrl-C at a chosen step, for the interruption tests (``tests/test_interruptions.py``).
     """
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:

@@ -123,7 +123,7 @@ def test_a_rows_in_use_pickle_without_shared_next_observations_still_loads() -> 
     state = buffer.__dict__.copy()
     for name in TaskReplayBuffer._ARRAYS:
         state[name] = getattr(buffer, name)[:, :used][held]
-    state["layout"] = "rows-in-use"  # the layout of 2026-12-02 to 2026-12-04 (the committed walker checkpoint)
+    state["layout"] = "rows-in-use"  # an earlier layout, still read: the committed walker checkpoint has it
     old = TaskReplayBuffer.__new__(TaskReplayBuffer)
     old.__setstate__(state)
     for name in TaskReplayBuffer._ARRAYS:

@@ -1,4 +1,5 @@
-"""train.py / enjoy.py / plots end to end on a tiny budget, and their clear errors.
+"""train.py / enjoy.py / plots end to end on a tiny budget: their flags, run folders, plans and the errors checked
+before training (the one-line answers to other mistakes are in tests/test_cli_errors.py).
 
 ``python train.py`` and ``python enjoy.py`` run as separate processes once each, as users run them (the ``trained``
 fixture, the harness-run replay); the other commands call the same entry points in-process
@@ -10,25 +11,39 @@ from __future__ import annotations
 import csv
 import json
 import math
+import multiprocessing
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
+import gymnasium as gym
 import pytest
 import yaml
 
 from sb3_pearl import PEARL, PEARLPlus
+from sb3_pearl.budgets import load_budget
+from sb3_pearl.evaluation.callbacks import MetaTestCallback
 from sb3_pearl.evaluation.figures import main as plots_main
+from sb3_pearl.evaluation.meta_test import MetaTestResult
+from sb3_pearl.evaluation.progress import TrainingProgressCallback, format_duration
 from sb3_pearl.evaluation.statistics import format_prior_posterior_table, summarize
-from sb3_pearl.zoo import constructor_kwargs, register_algos
+from sb3_pearl.finetune import FineTune
+from sb3_pearl.zoo import MetaExperimentManager, constructor_kwargs, register_algos
 from sb3_pearl.zoo import enjoy as enjoy_main
 from sb3_pearl.zoo import train as train_main
-from tests.conftest import TINY_ZOO_PARAMS, Completed, run_in_process
+from sb3_pearl.zoo.budget import budget_hyperparams, faster_option
+from sb3_pearl.zoo.safe_config import load_run_yaml
+from tests.conftest import (
+    ENV_ID,
+    TINY_ZOO_PARAMS,
+    Completed,
+    run_in_process,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
-ENV_ID = "SafePointGoalMeta-v0"
 # kl_weight / latent_dim check that -params reach the model.
 TINY_PARAMS = [*TINY_ZOO_PARAMS, "kl_weight:0.37", "latent_dim:3"]
 
@@ -333,8 +348,9 @@ def test_every_yaml_entry_is_valid() -> None:
 
 
 def test_a_short_run_meta_tests_on_a_few_tasks(tmp_path: Path) -> None:
-    """Issue 37 item 5: -n under a tenth of the entry's n_timesteps meta-tests on at most 5 held-out tasks instead of
-    the model's n_test_tasks (8 here), and says so in the plan line; the meta_test key's n_tasks still decides."""
+    """A short run is meta-tested quickly: -n under a tenth of the entry's n_timesteps meta-tests on at most 5 held-out
+    tasks instead of the model's n_test_tasks (8 here), and says so in the plan line; the meta_test key's n_tasks still
+    decides."""
     params = [*TINY_ZOO_PARAMS, "n_test_tasks:8"]
     short = train(tmp_path / "short", params=params)
     assert "the final meta-test: at most 5 tasks x 1 prior draw(s) x 3 trajectories (a short run" in short.stdout
@@ -378,3 +394,157 @@ def test_conf_file_that_is_not_a_mapping_is_refused(tmp_path: Path, content: str
     proc = run_in_process(train_main, *argv, check=False)
     assert proc.returncode == 2 and f"-conf {conf}" in proc.stderr and message in proc.stderr, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+# ----------------------------------------------------------------------------------------------
+# Run folders: reserved atomically; a refused set-up leaves none behind
+# ----------------------------------------------------------------------------------------------
+def _train_at_the_barrier(barrier: Any, logs: str, seed: int) -> None:  # a forked child: train.py's entry point
+    barrier.wait(timeout=60)
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", logs, "--seed", str(seed), "-n", "60", "--num-threads", "1"]
+    argv += ["--eval-freq", "-1", "-params", *TINY_ZOO_PARAMS]
+    os._exit(run_in_process(train_main, *argv, check=False).returncode)
+
+
+def test_runs_started_together_on_one_folder_each_get_their_own(tmp_path: Path) -> None:
+    context = multiprocessing.get_context("fork")
+    seeds = (1, 2, 3)
+    barrier = context.Barrier(len(seeds))
+    children = [context.Process(target=_train_at_the_barrier, args=(barrier, str(tmp_path), seed)) for seed in seeds]
+    for child in children:
+        child.start()
+    for child in children:
+        child.join(timeout=240)
+    assert [child.exitcode for child in children] == [0, 0, 0]
+    runs = sorted((tmp_path / "pearlplus").iterdir())
+    assert [run.name for run in runs] == [f"{ENV_ID}_{n}" for n in (1, 2, 3)]  # guards against: 2 or 3 runs in one folder
+    found = set()
+    for run in runs:
+        seed = load_run_yaml(run / ENV_ID / "args.yml")["seed"]
+        found.add(seed)
+        assert PEARLPlus.load(run / f"{ENV_ID}.zip").seed == seed
+        monitor = (run / "0.monitor.csv").read_text().splitlines()
+        assert sum(line.startswith("#") for line in monitor) == 1  # one writer
+    assert found == set(seeds)
+
+
+def test_a_refused_hyperparameter_leaves_no_run_folder(tmp_path: Path) -> None:
+    argv = ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path), "--seed", "1", "-params", "latent_dim:-3"]
+    refused = run_in_process(train_main, *argv, check=False)
+    assert refused.returncode == 2 and "latent_dim" in refused.stderr
+    assert not any((tmp_path / "pearlplus").iterdir())  # guards against: <EnvId>_1 with its monitor file and config
+
+
+def test_enjoy_skips_a_newer_run_folder_without_a_model(tmp_path: Path) -> None:
+    """A run killed before its first save (SIGKILL: nothing can clean up) left <env>_2 without a model; <env>_1 has one.
+    Guards against: 'No model found ... <env>_2/<env>.zip'."""
+    runs = tmp_path / "pearlplus"
+    PEARLPlus("MlpPolicy", ENV_ID, n_train_tasks=2, n_test_tasks=1, seed=0).save(runs / f"{ENV_ID}_1" / f"{ENV_ID}.zip")
+    (runs / f"{ENV_ID}_2" / ENV_ID).mkdir(parents=True)
+    args = ("--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path), "--no-render", "--n-tasks", "1", "--n-adapt", "0")
+    proc = run_in_process(enjoy_main, *args)
+    assert (
+        f"Loading the latest run with a model, {runs / f'{ENV_ID}_1'}: {ENV_ID}_2 holds none (a run stopped before its "
+        "first save; --exp-id chooses)" in proc.stdout
+    )
+    refused = run_in_process(enjoy_main, *args, "--exp-id", "2", check=False)  # an explicit choice is kept
+    assert refused.returncode == 2 and f"No model found for pearlplus on {ENV_ID}" in refused.stderr
+
+
+def test_n_timesteps_takes_the_yaml_notation() -> None:
+    """``-n 2e3`` as the YAML files write ``2e6``; rl_zoo3's int parser gets ``2000``."""
+    from sb3_pearl.zoo.usage import check_n_timesteps
+
+    assert check_n_timesteps(["--algo", "pearl", "-n", "2e3"]) == ["--algo", "pearl", "-n", "2000"]
+    assert check_n_timesteps(["--n-timesteps=2_000"]) == ["--n-timesteps=2000"]
+
+
+# ----------------------------------------------------------------------------------------------
+# The plan and the ETA of a run; --budget takes the preset's entry
+# ----------------------------------------------------------------------------------------------
+def test_plan_eta_and_the_slow_run_hint(tiny_kwargs: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
+    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, device="cpu", **tiny_kwargs)
+    plan = model.training_plan(400)
+    # iteration 0: 60 steps x 4 tasks, then iterations of 2 x (30 + 10 + 30) = 140 steps: 240 + 140 + 20 (partial)
+    assert (plan.env_steps, plan.initial_steps, plan.first_updates, plan.gradient_steps) == (400, 240, 5, 5 + 5 + 1)
+    meta_test_callback = MetaTestCallback(gym.make("PointGoalMeta-v0"), eval_freq=300, n_tasks=2, n_adapt=1, verbose=1)
+    progress = TrainingProgressCallback(progress_bar=True, slow_hint="Faster: the HINT.", slow_after_s=0.0)
+    model.learn(400, callback=[progress, meta_test_callback])
+    assert model._n_updates == plan.gradient_steps  # the plan counts what learn() does
+    assert model.gradient_step_callback is None  # the progress hook is removed after training (and never saved)
+    out = capsys.readouterr().out
+    assert "Initial collection: the first 240 env steps only collect data (iteration 0: 60 steps" in out
+    assert "First iteration: 240 env steps in " in out and "5 gradient steps in " in out
+    assert "ETA of the whole run: " in out and "(160 env steps and 6 gradient steps to go)" in out
+    assert "This run takes more than 0.0 s on a CPU. Faster: the HINT." in out
+    assert "Meta-test num_timesteps=300 over 2 test tasks x 1 repeat(s)" in out  # the in-training line says how many
+
+
+def test_finetune_plan_counts_sac_updates() -> None:
+    model = FineTune(
+        "MlpPolicy",
+        "PointGoalMeta-v0",
+        learning_starts=50,
+        batch_size=16,
+        n_train_tasks=4,
+        n_test_tasks=2,
+        policy_kwargs=dict(net_arch=[16]),
+        seed=0,
+    )
+    plan = model.training_plan(120)
+    assert plan is not None and (plan.gradient_steps, plan.initial_steps) == (70, 50)
+    model.learn(120)
+    assert model._n_updates == plan.gradient_steps
+
+
+def test_budget_flag_takes_the_preset_entry() -> None:
+    entry = budget_hyperparams("cpu", "Walker2dVelMeta-v0", "maml")
+    budget = load_budget("cpu", "walker2d-vel", "maml")
+    assert entry["n_timesteps"] == budget["n_timesteps"] and entry["meta_test"] == budget["meta_test"]
+    assert entry["policy_kwargs"] == {"net_arch": [64, 64], "activation_fn": "tanh"}  # the preset's plain data, no eval
+    assert entry["meta_batch_size"] == budget["kwargs"]["meta_batch_size"]
+    hint = faster_option("AntVelMeta-v0", "pearlplus", None)
+    assert "--budget cpu" in hint and f"{load_budget('cpu', 'ant3d-vel', 'pearlplus')['n_timesteps']:,} env steps" in hint
+    assert faster_option("PointGoalMeta-v0", "pearl", None).startswith("No CPU-sized budget exists for PointGoalMeta-v0")
+    assert format_duration(2 * 86_400 + 11 * 3600) == "2 d 11 h"
+
+
+# ----------------------------------------------------------------------------------------------
+# Plots without -o go into the run folder
+# ----------------------------------------------------------------------------------------------
+def test_plots_without_output_write_into_the_run_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from sb3_pearl.plots import main as plots_main
+
+    rows = [
+        {"task": t, "repeat": 0, "k": k, "return": float(k - t), "cost": 0.0, "length": 20, "violated": False}
+        for t in range(2)
+        for k in range(2)
+    ]
+    run_dir = tmp_path / "logs" / "pearl" / f"{ENV_ID}_1"
+    run_dir.mkdir(parents=True)
+    MetaTestResult(rows=rows, summary=summarize(rows), config={"algo": "pearl", "n_adapt": 1}).to_json(
+        run_dir / "meta_test.json"
+    )
+    monkeypatch.chdir(tmp_path)
+    plots_main([str(run_dir)])
+    assert (run_dir / "plots.png").is_file() and (run_dir / "plots_violations.png").is_file()
+    assert not list(tmp_path.glob("*.png"))
+
+
+def test_budget_preset_policy_kwargs_reach_the_model_without_eval(tmp_path: Path) -> None:
+    """``train.py --budget smoke``: the preset's ``policy_kwargs`` (activation by name) reach the saved model as the
+    harness builds them, and the run's config.yml keeps them as the preset's plain data (no string, no eval)."""
+    from torch import nn
+
+    from sb3_pearl.maml import MAML
+    from sb3_pearl.zoo import train
+    from sb3_pearl.zoo.safe_config import load_run_yaml
+
+    env_id = "SafePointGoalMeta-v0"
+    train(["--algo", "maml", "--env", env_id, "--budget", "smoke", "-f", str(tmp_path), "--seed", "0", "--num-threads", "1"])
+    run_dir = tmp_path / "maml" / f"{env_id}_1"
+    model = MAML.load(run_dir / f"{env_id}.zip")
+    assert model.policy_kwargs["activation_fn"] is nn.Tanh and model.policy_kwargs["net_arch"] == [16, 16]
+    assert any(isinstance(module, nn.Tanh) for module in model.policy.modules())
+    saved = dict(load_run_yaml(run_dir / env_id / "config.yml"))  # the safe loader: a class would be refused
+    assert dict(saved["policy_kwargs"]) == {"net_arch": [16, 16], "activation_fn": "tanh"}

@@ -1,4 +1,5 @@
-"""Tests for the Fine-Tune baseline (sb3_pearl.finetune): meta-training on the task mixture, adaptation, save / load."""
+"""Tests for the Fine-Tune baseline (sb3_pearl.finetune): meta-training on the task mixture and adaptation (save / load:
+tests/test_save_load.py)."""
 
 from __future__ import annotations
 
@@ -207,34 +208,6 @@ def test_reset_adaptation_restores_the_pretrained_weights_and_optimizers() -> No
     # Same seed, same data: identical fine-tuned policy, so the weights, the Adam moments and the
     # entropy coefficient all started from the pretrained ones again.
     np.testing.assert_allclose(adapt_twice(), first, atol=1e-6)
-
-
-@pytest.mark.parametrize("discrete", [False, True])
-def test_save_load_equivalence(tmp_path: Path, discrete: bool) -> None:
-    model = tiny_model(make_discrete_env() if discrete else "PointGoalMeta-v0", learn=200)
-    if not discrete:  # save while adapted: the zip holds the pretrained model only
-        rollout(model, model.test_tasks[0], deterministic=False)
-        model.adapt()
-    model.save(tmp_path / "model.zip")
-    loaded = FineTune.load(tmp_path / "model.zip")
-    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
-    assert loaded.max_episode_steps == model.max_episode_steps == 20
-    assert loaded.adapt_gradient_steps == model.adapt_gradient_steps
-    assert type(loaded.policy) is type(model.policy)
-    # Saving forgot the adaptation: the loaded model acts like the pretrained policy.
-    model.reset_adaptation()
-    np.testing.assert_array_equal(probe_actions(loaded), probe_actions(model))
-    if discrete:
-        return
-    # Optimizer states and the entropy coefficient were saved too: the same fine-tuning gives the same policy.
-    results = []
-    for m in (model, loaded):
-        m.reset_adaptation()
-        m.set_random_seed(3)
-        rollout(m, model.test_tasks[0], deterministic=False)
-        m.adapt()
-        results.append(probe_actions(m))
-    np.testing.assert_allclose(results[0], results[1], atol=1e-6)
 
 
 def test_discrete_learn_and_adapt() -> None:

@@ -1,5 +1,5 @@
-"""Behaviour preserved across refactors (issue 39's constraint): a smoke experiment's result.json and a ``train.py``
-smoke run's meta_test.json, against the numbers committed in ``tests/data/golden_results.json``.
+"""Behaviour preserved across refactors (a refactor must not move a number): a smoke experiment's result.json and a
+``train.py`` smoke run's meta_test.json, against the numbers committed in ``tests/data/golden_results.json``.
 
 Every meta-test row (return, cost, violation) of both runs is compared. On the kind of machine that wrote the file
 (the same CPU model and feature flags, torch CPU capability, torch and numpy versions), the comparison is

@@ -1,9 +1,17 @@
-"""Stops and checkpoints between two gradient steps: a stop lands within one gradient step at any budget and resumes
+"""Signals and stops: SIGTERM, Ctrl-C or an exception during train.py saves what the resume needs and says where,
+and a signal during the set-up leaves no run folder; a stop lands within one gradient step at any budget and resumes
 exactly; periodic checkpoints taken inside an iteration's gradient steps resume exactly; the ETA comes from the first
-gradient steps instead of after a whole iteration."""
+gradient steps instead of after a whole iteration. Harness runs stopped the same way are in
+tests/test_reproduce_resume.py."""
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -11,18 +19,25 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+import yaml
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
-import tests.faulty_envs  # noqa: F401  (registers the noisy-reset family)
+import tests.faulty_envs as faulty_envs
 from sb3_pearl import PEARL, PEARLPlus
-from sb3_pearl.common.callbacks import gradient_step_event
+from sb3_pearl.common.callbacks import StopOnSignalCallback, gradient_step_event
 from sb3_pearl.evaluation import progress
 from sb3_pearl.evaluation.callbacks import ResumableCheckpointCallback, checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.progress import TrainingProgressCallback
+from sb3_pearl.zoo import MetaExperimentManager, train
 from sb3_pearl.zoo.flags import parse_project_flags
-from sb3_pearl.zoo.interruptions import StopOnSignalCallback
 from sb3_pearl.zoo.usage import UsageError
-from tests.conftest import write_model_zip
+from tests.conftest import (
+    ENV_ID,
+    TINY_ZOO,
+    Completed,
+    run_in_process,
+    write_model_zip,
+)
 
 NOISY_ENV = "NoisyResetSafePointGoalMeta-v0"  # its resets draw from the env's RNG: the env state must resume too
 TOTAL = 660  # tiny PEARL: iteration 0 = 240 env steps and 5 gradient steps, then 140 env steps and 5 per iteration
@@ -182,78 +197,6 @@ def test_checkpoint_minutes_flag() -> None:
         ResumableCheckpointCallback(0, "x", every_s=0.0)
 
 
-def test_a_part_filled_sac_buffer_is_saved_compact_and_loads_to_the_same_rows(tmp_path: Path) -> None:
-    """SB3 pickles all buffer_size rows of a replay buffer; the project's save keeps the filled ones (a checkpoint of a
-    part-way 500k Ant run was 1.8 GB), and the load restores the full allocation, rows past pos zero as SB3 makes them."""
-    from sb3_pearl import FineTune
-
-    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
-    model = FineTune("MlpPolicy", NOISY_ENV, buffer_size=100_000, **kwargs)  # far more rows than are filled
-    model.learn(150)
-    model.save_replay_buffer(tmp_path / "buffer")
-    full = model.replay_buffer
-    assert (tmp_path / "buffer.pkl").stat().st_size < 0.05 * full.observations.nbytes
-    other = FineTune("MlpPolicy", NOISY_ENV, buffer_size=100_000, **kwargs)
-    other.load_replay_buffer(tmp_path / "buffer.pkl")
-    buffer = other.replay_buffer
-    assert (buffer.pos, buffer.full, buffer.buffer_size) == (full.pos, full.full, full.buffer_size)
-    for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
-        np.testing.assert_array_equal(getattr(buffer, name), getattr(full, name))
-    assert full.observations.shape[0] == 100_000  # the model's own buffer was left whole by the save
-
-
-def test_an_older_checkpoint_is_compacted_in_place_and_loads_the_same_buffer(tmp_path: Path) -> None:
-    """`reproduce compact`: a checkpoint written with the whole allocation (before compact buffers) is rewritten with
-    the filled rows only; the state names the new parts, the old ones are gone, and loading it gives the same buffer."""
-    import pickle
-
-    from pearl_paper.reproduce.checkpoint import PART_BYTES, RunCheckpoint
-    from sb3_pearl import FineTune
-
-    kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
-    model = FineTune("MlpPolicy", NOISY_ENV, buffer_size=200_000, **kwargs).learn(150)
-    checkpoint = RunCheckpoint(tmp_path)
-    files = checkpoint.save_model(model, None)
-    whole = pickle.dumps(model.replay_buffer)  # as an older save wrote it: every allocated row
-    assert len(whole) > PART_BYTES / 10
-    files = {key: name for key, name in files.items() if not key.startswith("replay")}
-    files.update(checkpoint._write_parts("replay_150.pkl", whole, "replay"))
-    checkpoint.write_state({"phase": "train", "files": files, "num_timesteps": 150})
-    before, after = checkpoint.compact_replay()
-    assert before == len(whole) and after < before / 20
-    state = checkpoint.read_state()
-    assert state is not None and "replay_150.pkl" not in state["files"].values()
-    assert not (checkpoint.folder / "replay_150.pkl").exists() and any(checkpoint.folder.glob("replay_150_compact*"))
-    resumed = checkpoint.load_model(state, FineTune, gym.make(NOISY_ENV))
-    for name in ("observations", "actions", "rewards", "dones"):
-        np.testing.assert_array_equal(getattr(resumed.replay_buffer, name), getattr(model.replay_buffer, name))
-    files_before = dict(checkpoint.read_state()["files"])  # type: ignore[index]
-    mtimes = {name: (checkpoint.folder / name).stat().st_mtime_ns for name in files_before.values()}
-    again, again_after = checkpoint.compact_replay()  # compact already: nothing is rewritten
-    assert again == again_after and checkpoint.read_state()["files"] == files_before  # type: ignore[index]
-    assert all((checkpoint.folder / name).stat().st_mtime_ns == mtime for name, mtime in mtimes.items())
-
-
-def test_a_buffer_that_keeps_next_observations_in_place_is_not_compacted() -> None:
-    """With optimize_memory_usage SB3 keeps the last next observation in observations[pos]: cutting at pos would lose
-    it, so such a buffer is pickled whole."""
-    from stable_baselines3.common.buffers import ReplayBuffer
-
-    from sb3_pearl.common.persistence import compact_buffer
-
-    env = gym.make(NOISY_ENV)
-    buffer = ReplayBuffer(
-        100, env.observation_space, env.action_space, optimize_memory_usage=True, handle_timeout_termination=False
-    )
-    for _ in range(3):
-        obs = env.observation_space.sample()[None]
-        buffer.add(obs, obs + 1, env.action_space.sample()[None], np.zeros(1), np.zeros(1), [{}])
-    assert compact_buffer(buffer) is buffer
-    plain = ReplayBuffer(100, env.observation_space, env.action_space)
-    compact = compact_buffer(plain)
-    assert compact is not plain and compact_buffer(compact) is compact  # compacting twice changes nothing
-
-
 def test_an_interrupted_harness_run_says_whether_a_checkpoint_exists(tmp_path: Path) -> None:
     """A child of `reproduce run` stopped before its first checkpoint promised a resume from a checkpoint that did not
     exist; it now says which of the two the same command will do."""
@@ -278,3 +221,133 @@ def test_the_demo_names_an_empty_or_foreign_remeasured_record(tmp_path: Path) ->
     (tmp_path / "meta_test_large.json").write_text('{"summary": []}')
     with pytest.raises(ValueError, match=r"meta_test_large.json is not a re-measured record .*reproduce remeasure"):
         demo.remeasured_meta_test(tmp_path)
+
+
+# ----------------------------------------------------------------------------------------------
+# SIGTERM and exceptions during train.py save the model and say where
+# ----------------------------------------------------------------------------------------------
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def start_train(folder: Path, env_id: str, *extra: str) -> subprocess.Popen[str]:
+    conf = folder / "conf.yml"
+    conf.write_text(yaml.safe_dump({env_id: TINY_ZOO}))
+    command = [sys.executable, str(ROOT / "train.py"), "--algo", "pearlplus", "--env", env_id, "-f", str(folder / "logs")]
+    command += ["-conf", str(conf), "--seed", "1", "--num-threads", "1", "--gym-packages", "tests.faulty_envs", *extra]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "MPLBACKEND": "Agg"}
+    return subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_sigterm_saves_the_model_and_says_where(tmp_path: Path) -> None:
+    proc = start_train(tmp_path, ENV_ID)
+    assert proc.stdout is not None
+    output = []
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # training has started once the logger printed its first iteration
+        line = proc.stdout.readline()
+        output.append(line)
+        if "n_updates" in line or not line:
+            break
+    assert any("n_updates" in line for line in output), "".join(output)
+    proc.send_signal(signal.SIGTERM)
+    rest, _ = proc.communicate(timeout=60)
+    text = "".join(output) + rest
+    model_path = tmp_path / "logs" / "pearlplus" / f"{ENV_ID}_1" / f"{ENV_ID}.zip"
+    assert proc.returncode == 128 + signal.SIGTERM, text[-3000:]
+    assert "Received SIGTERM: stopping training where it resumes exactly" in text
+    assert f"the model is saved to {model_path} with its replay buffer" in text
+    assert PEARLPlus.load(model_path).num_timesteps > 0
+
+
+def test_exception_during_training_saves_the_model_and_reraises(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    env_id = "FailingSafePointGoalMeta-v0"
+    conf = tmp_path / "conf.yml"
+    conf.write_text(yaml.safe_dump({env_id: TINY_ZOO}))
+    argv = ["--algo", "pearlplus", "--env", env_id, "-f", str(tmp_path / "logs"), "-conf", str(conf), "--seed", "1"]
+    with pytest.raises(RuntimeError, match=r"the simulator crashed \(on purpose\)"):  # re-raised, so the exit status is 1
+        train([*argv, "--num-threads", "1", "--gym-packages", "tests.faulty_envs"])  # train.py's entry point, in-process
+    model_path = tmp_path / "logs" / "pearlplus" / f"{env_id}_1" / f"{env_id}.zip"
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert f"Training stopped by RuntimeError at 200 timesteps: the model reached so far is saved to {model_path}" in text
+    assert PEARLPlus.load(model_path).num_timesteps == 200
+
+
+# ----------------------------------------------------------------------------------------------
+# SIGTERM and Ctrl-C alike: stopped where the run resumes exactly, buffer saved, run marked cut
+# ----------------------------------------------------------------------------------------------
+SIGNAL_ENV = "SignalSafePointGoalMeta-v0"
+
+
+def _train_signal_env(tmp_path: Path, folder: Path, *extra: str, check: bool = True) -> Completed:
+    conf = tmp_path / "conf.yml"  # iteration 0 = 4 x 30 = 120 steps, then 5 x (30 + 30) = 300
+    conf.write_text(yaml.safe_dump({SIGNAL_ENV: {**TINY_ZOO, "n_timesteps": 420, "meta_test": "dict(n_adapt=0)"}}))
+    command = ["--algo", "pearlplus", "--env", SIGNAL_ENV, "-f", str(folder), "-conf", str(conf), "--seed", "1"]
+    command += ["--num-threads", "1", "--eval-episodes", "1", "--gym-packages", "tests.faulty_envs", *extra]
+    return run_in_process(train, *command, check=check)
+
+
+def _policy_weights(path: Path) -> list[th.Tensor]:
+    return list(PEARLPlus.load(path).policy.state_dict().values())
+
+
+def test_a_signal_cuts_the_run_saves_what_the_resume_needs_and_the_resume_is_exact(tmp_path: Path) -> None:
+    faulty_envs.send_signals({})
+    _train_signal_env(tmp_path, tmp_path / "full")
+    full = _policy_weights(tmp_path / "full" / "pearlplus" / f"{SIGNAL_ENV}_1" / f"{SIGNAL_ENV}.zip")
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        name = signal.Signals(signum).name
+        logs = tmp_path / name
+        run = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
+        faulty_envs.send_signals({200: signum})  # inside iteration 1 (steps 120-420)
+        cut = _train_signal_env(tmp_path, logs, check=False)
+        assert cut.returncode == 128 + signum, cut.stdout[-2000:] + cut.stderr[-2000:]
+        assert f"Received {name}: stopping training where it resumes exactly" in cut.stdout
+        assert f"Stopped by {name} at 200 of 420 timesteps, " in cut.stdout  # ... and what was trained:
+        assert "gradient steps trained: the run is cut" in cut.stdout
+        record = json.loads((run / "interrupted.json").read_text())
+        assert record["signal"] == name and record["during"] == "training" and record["exact_resume"]
+        assert record["num_timesteps"] == 200 and record["replay_buffer"] == str(run / "replay_buffer.pkl")
+        assert not (run / "meta_test.json").exists()  # skipped for both signals
+        assert (run / "replay_buffer.pkl").is_file()  # without --save-replay-buffer: the resume needs it
+        assert record["resume"].endswith(f"--resume {run / f'{SIGNAL_ENV}.zip'}")
+        resumed = _train_signal_env(tmp_path, logs, "--resume", str(run / f"{SIGNAL_ENV}.zip"))
+        assert "Resuming at 200 timesteps: 220 to go" in resumed.stdout
+        again = _policy_weights(logs / "pearlplus" / f"{SIGNAL_ENV}_2" / f"{SIGNAL_ENV}.zip")
+        assert all(th.equal(a, b) for a, b in zip(full, again, strict=True)), name
+
+
+def test_a_signal_during_the_final_meta_test_keeps_the_model_and_writes_no_meta_test(tmp_path: Path) -> None:
+    """docs/reliability.md: a signal during the final meta-test leaves no meta_test.* (no partial numbers), the trained
+    model saved, interrupted.json saying when, and the exit code 128 + signal."""
+    faulty_envs.send_signals({420 + 10: signal.SIGTERM})  # training takes env steps 1-420; the meta-test follows
+    logs = tmp_path / "logs"
+    run = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
+    cut = _train_signal_env(tmp_path, logs, check=False)
+    assert cut.returncode == 128 + signal.SIGTERM, cut.stdout[-2000:] + cut.stderr[-2000:]
+    assert "Received SIGTERM: stopping the final meta-test (the model is saved)" in cut.stdout
+    assert "Stopped by SIGTERM during the final meta-test" in cut.stdout
+    record = json.loads((run / "interrupted.json").read_text())
+    assert record["signal"] == "SIGTERM" and record["during"] == "final meta-test" and record["num_timesteps"] == 420
+    assert not any(run.glob("meta_test.*"))
+    assert PEARLPlus.load(run / f"{SIGNAL_ENV}.zip").num_timesteps == 420
+
+
+# ----------------------------------------------------------------------------------------------
+# SIGTERM during train.py's set-up: no half-made run folder; enjoy's latest run is the latest with a model
+# ----------------------------------------------------------------------------------------------
+def test_sigterm_during_the_set_up_leaves_no_run_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Guards against: the process died at once (no handler before training), leaving <algo>/<env>_<n>/ without a model."""
+
+    def signalled(manager: MetaExperimentManager, model: object) -> None:  # after the folder is reserved, before learn
+        if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, before):  # the signal would kill pytest here
+            raise AssertionError("no SIGTERM handler during the set-up: the process dies and leaves its run folder")
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    logs, before = tmp_path / "logs", signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(MetaExperimentManager, "_check_held_out_tasks", signalled)
+    proc = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "-f", str(logs), "-n", "200", check=False)
+    assert proc.returncode == 128 + signal.SIGTERM, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "Stopped by SIGTERM before training: nothing trained or saved, no run folder kept" in proc.stdout
+    assert list((logs / "pearlplus").iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is before  # the previous handler is back

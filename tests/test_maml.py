@@ -16,7 +16,6 @@ import sb3_pearl  # noqa: F401  (registers the task families)
 from sb3_pearl.envs.task_protocol import MetaTaskEnv, Task
 from sb3_pearl.maml import MAML
 from sb3_pearl.maml.maml import EpisodeBatch, TaskSamples
-from tests.conftest import CountSteps
 
 th.set_num_threads(1)
 
@@ -208,25 +207,6 @@ def test_second_order_term_flows_through_inner_step() -> None:
         expected -= model.inner_lr * th.nn.utils.parameters_to_vector(hvp) / len(pre)
     assert (second - first).norm() > 1e-4 * second.norm()
     th.testing.assert_close(second - first, expected, rtol=1e-3, atol=1e-6)
-
-
-def test_learn_save_load_identical_actions(tmp_path: Any) -> None:
-    model = make_model(n_envs=2)
-    callback = CountSteps()
-    model.learn(1, callback=callback)  # one meta-iteration: 2 phases x 4 tasks x 4 episodes x 20 steps
-    assert model.num_timesteps == 2 * 4 * 4 * 20
-    assert callback.calls == 2 * 4 * 4 * 20 // 2
-    model.save(tmp_path / "maml.zip")
-    loaded = MAML.load(tmp_path / "maml.zip")
-    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
-    assert loaded.max_episode_steps == 20
-    obs = np.random.default_rng(0).uniform(-1, 1, size=(16, 2)).astype(np.float32)
-    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
-    # with an env (another n_envs): training continues, on the saved task lists
-    resumed = MAML.load(tmp_path / "maml.zip", env=make_vec_env("PointGoalMeta-v0", n_envs=1, seed=1))
-    assert resumed.train_tasks == model.train_tasks
-    resumed.learn(1, reset_num_timesteps=False)
-    assert resumed.num_timesteps == 2 * model.num_timesteps
 
 
 def test_subproc_vec_env_and_discrete_actions() -> None:

@@ -12,7 +12,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_pearl  # noqa: F401  (registers the families)
 from pearl_paper.reproduce.velocity import constant_references, family_verdicts, geometric_median
-from sb3_pearl import FineTune, Oracle
+from sb3_pearl import Oracle
 from sb3_pearl.envs import FAMILIES
 from sb3_pearl.envs.task_observation import TaskObservation, task_features
 from sb3_pearl.evaluation.meta_test import meta_test
@@ -80,23 +80,6 @@ class _DictObservation(gym.ObservationWrapper):
 
     def observation(self, observation: np.ndarray) -> dict[str, np.ndarray]:
         return {"observation": observation}
-
-
-def test_oracle_learns_saves_loads_and_acts_identically(tmp_path) -> None:
-    model = Oracle("MlpPolicy", "PointGoalMeta-v0", seed=0, **TINY)
-    assert model.observation_space.shape == (4,)  # position (2) + goal (2)
-    model.learn(300)
-    path = tmp_path / "oracle.zip"
-    model.save(path)
-    loaded = Oracle.load(path)
-    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
-    obs = np.stack([model.observation_space.sample() for _ in range(8)])
-    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
-    # a Fine-Tune zip is not an oracle's (its policy sees no task)
-    finetune = FineTune("MlpPolicy", "PointGoalMeta-v0", seed=0, **TINY)
-    finetune.save(tmp_path / "finetune.zip")
-    with pytest.raises(ValueError, match="holds a FineTune model, not a Oracle one"):
-        Oracle.load(tmp_path / "finetune.zip")
 
 
 def test_oracle_meta_test_on_the_plain_env_is_informed_and_does_not_adapt() -> None:

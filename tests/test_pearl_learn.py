@@ -1,8 +1,7 @@
-"""learn(), the SB3 contract, data collection per task, save/load, determinism and errors."""
+"""learn(), the SB3 contract, data collection per task, determinism and errors (save / load: tests/test_save_load.py)."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -100,57 +99,6 @@ def test_tasks_come_from_sample_tasks_with_the_seed(tiny_kwargs: dict[str, Any])
     assert model.train_tasks == expected[:4] and model.test_tasks == expected[4:]
 
 
-@pytest.mark.parametrize("discrete", [False, True])
-def test_save_load_equivalence(tmp_path: Path, discrete: bool, tiny_kwargs: dict[str, Any]) -> None:
-    env = make_discrete_env() if discrete else gym.make("SafePointGoalMeta-v0")
-    # the learned entropy coefficient (saved as a tensor with its optimizer) and the fixed default
-    model = PEARLPlus("MlpPolicy", env, seed=0, ent_coef=1.0 if discrete else "auto", **tiny_kwargs)
-    model.learn(400)
-    model.save(tmp_path / "model.zip")
-    model.save_replay_buffer(tmp_path / "buffer.pkl")
-    loaded = PEARLPlus.load(tmp_path / "model.zip")  # no env needed
-    assert loaded.train_tasks == model.train_tasks and loaded.test_tasks == model.test_tasks
-    obs = th.rand(32, 2) * 2 - 1
-    z = th.randn(32, model.latent_dim)
-    assert th.equal(model.policy.act(obs, z, deterministic=True), loaded.policy.act(obs, z, deterministic=True))
-    x = th.cat([obs, z], dim=-1)
-    if not discrete:
-        x = th.cat([x, th.rand(32, 2) * 2 - 1], dim=-1)
-    assert model.prior_critic is not None and loaded.prior_critic is not None
-    assert th.equal(model.prior_critic(x), loaded.prior_critic(x))
-    assert th.equal(model.critic_target(x), loaded.critic_target(x))
-    for name in ("encoder", "actor", "critic", "prior_critic"):
-        saved = getattr(model, name).optimizer.state_dict()["state"]
-        restored = getattr(loaded, name).optimizer.state_dict()["state"]
-        assert th.equal(saved[0]["exp_avg"], restored[0]["exp_avg"]), name
-    if discrete:
-        assert loaded.log_ent_coef is None and th.equal(loaded.ent_coef_tensor, model.ent_coef_tensor)
-    else:
-        assert loaded.log_ent_coef is not None and th.equal(loaded.log_ent_coef, model.log_ent_coef)
-    # Adaptation gives the same posterior from the same context.
-    for m in (model, loaded):
-        m.reset_adaptation()
-        for t in range(5):
-            m.observe(
-                np.array([0.1 * t, 0.0]), 1 if discrete else np.array([0.05, -0.05]), -1.0 + t, np.array([0.1, 0.2]), False
-            )
-    assert all(th.allclose(a, b) for a, b in zip(model.infer_posterior(), loaded.infer_posterior()))
-    # Buffers round trip, and training goes on with the env set again.
-    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
-    np.testing.assert_array_equal(loaded.replay_buffer.rl.observations, model.replay_buffer.rl.observations)
-    np.testing.assert_array_equal(loaded.replay_buffer.context.size, model.replay_buffer.context.size)
-    loaded.set_env(env)
-    loaded.learn(100, reset_num_timesteps=False)
-    assert loaded.num_timesteps == 500
-
-
-def test_load_rejects_another_env(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
-    model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **tiny_kwargs)
-    model.save(tmp_path / "model.zip")
-    with pytest.raises(ValueError, match="Action spaces do not match|Observation spaces do not match"):
-        PEARLPlus.load(tmp_path / "model.zip", env=make_vec_env(make_discrete_env))
-
-
 def test_adaptation_api(tiny_kwargs: dict[str, Any]) -> None:
     model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **tiny_kwargs)
     model.learn(300)
@@ -242,16 +190,6 @@ def test_collection_sizes_are_validated_and_zero_initial_steps_work(tiny_kwargs:
     model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, **{**tiny_kwargs, "num_initial_steps": 0})
     model.learn(200)  # no initial phase: every iteration visits sampled tasks
     assert model.num_timesteps == 200 and model._n_updates > 0
-
-
-def test_saved_replay_buffer_holds_only_used_rows(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
-    model = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, buffer_size=1_000_000, **tiny_kwargs)
-    model.learn(300)
-    model.save_replay_buffer(tmp_path / "buffer.pkl")
-    assert (tmp_path / "buffer.pkl").stat().st_size < 1_000_000  # 4 tasks x 1e6 rows would be > 100 MB
-    model.load_replay_buffer(tmp_path / "buffer.pkl")
-    assert model.replay_buffer.rl.observations.shape == (4, 1_000_000, 2)
-    model.learn(100, reset_num_timesteps=False)
 
 
 def test_pearlplus_without_prior_term_is_pearl(tiny_kwargs: dict[str, Any]) -> None:

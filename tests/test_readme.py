@@ -1,6 +1,6 @@
-"""The documented commands run as written (issue 37): the README's Python examples, every command of the README,
-docs/README.md, docs/cli.md and the algorithm pages at a smoke budget, the algorithm pages' examples and parameter
-lists, and ``make demo`` with its own defaults.
+"""The documented commands run as written (a command that a page shows and that fails is a user's first failure): the
+README's Python examples, every command of the README, docs/README.md, docs/cli.md and the algorithm pages at a smoke
+budget, the algorithm pages' examples and parameter lists, and ``make demo`` with its own defaults.
 
 **The convention for command blocks** (```` ```bash ```` blocks of the pages in :data:`COMMAND_PAGES`): every command
 runs in the fast suite, in the page's order in one temporary folder per page (so an ``enjoy.py`` line replays the
@@ -291,7 +291,8 @@ def test_the_clone_weight_note_holds() -> None:
 
 def test_the_thread_default_is_said_where_a_user_looks() -> None:
     """The README's quick start and cli.md say the thread rule of sb3_pearl.common.threads, with its numbers, and no
-    documented train.py / enjoy.py command sets --num-threads (the default is the fast count: issue 37)."""
+    documented train.py / enjoy.py command sets --num-threads (the default is the fast count, which a documented flag
+    would override)."""
     from sb3_pearl.common.threads import MAX_THREADS, WIDE_LAYER
 
     quick_start = _section(README.read_text(), "Quick start")
@@ -360,7 +361,7 @@ def test_demo_at_a_small_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, c
 
 @pytest.mark.slow
 def test_make_demo_as_is(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``python -m pearl_paper.demo`` exactly as ``make demo`` runs it: within the issue's 5 minutes on 2 cores."""
+    """``python -m pearl_paper.demo`` exactly as ``make demo`` runs it: within the 5 minutes the README promises on 2 cores."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("MPLBACKEND", "Agg")
     start = time.time()

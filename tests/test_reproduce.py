@@ -14,9 +14,10 @@ import pytest
 from pearl_paper.experiments import EXPERIMENTS, get_experiment
 from pearl_paper.experiments.families import get_family
 from pearl_paper.experiments.spec import Claim, Criterion, Experiment, PaperCell, Variant, claims_from_paper, resolve_k
+from pearl_paper.reproduce.cells import load_groups
 from pearl_paper.reproduce.cli import main
 from pearl_paper.reproduce.competence import criterion_value, evaluate_competence
-from pearl_paper.reproduce.layout import RESULT_KEYS, parse_seeds
+from pearl_paper.reproduce.layout import RESULT_KEYS, parse_seeds, write_json_atomic
 from pearl_paper.reproduce.report import BEGIN, END, GENERATED, splice
 from pearl_paper.reproduce.runner import held_out_record
 from pearl_paper.reproduce.stats import (
@@ -39,7 +40,12 @@ from sb3_pearl.budgets import (
     validate_entry,
 )
 from sb3_pearl.evaluation.meta_test import MetaTestResult
-from tests.conftest import Completed, run_in_process, write_model_zip
+from tests.conftest import (
+    Completed,
+    _read_only_for_root,
+    run_in_process,
+    write_model_zip,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_ARGS = ["safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0", "alpha-0.1"]
@@ -69,7 +75,7 @@ def run_folder(results_dir: Path, variant: str) -> Path:
 def test_train_py_and_the_harness_build_and_train_the_same_model(results: Path, tmp_path: Path) -> None:
     """The two paths from a budget preset to a model (``train.py --budget`` through rl_zoo3's experiment manager, and
     ``reproduce run`` through ``runner.run_one``) make the same model from the same entry and seed: every setting means
-    the same on both, down to the weights after training (one process, so bit for bit on any CPU; issue 39)."""
+    the same on both, down to the weights after training (one process, so bit for bit on any CPU)."""
     import torch as th
 
     from sb3_pearl.zoo import train
@@ -294,8 +300,8 @@ def test_run_notes_seeds_a_variant_does_not_declare(tmp_path: Path, capsys: pyte
 
 
 def test_run_dry_run_says_what_is_done_resumed_and_started(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A finished run is listed as skipped, one with a checkpoint as resumed, the others as started (issue 37: the dry
-    run listed finished runs as if they would run); --force starts all from zero; nothing on disk changes."""
+    """A finished run is listed as skipped, one with a checkpoint as resumed, the others as started (a dry
+    run must not list finished runs as if they would run); --force starts all from zero; nothing on disk changes."""
     from pearl_paper.reproduce.checkpoint import RunCheckpoint
     from pearl_paper.reproduce.cli import main
     from pearl_paper.reproduce.layout import write_json_atomic
@@ -745,7 +751,7 @@ def test_a_group_holds_the_seeds_its_experiment_declares(tmp_path: Path) -> None
 
 
 def test_a_variant_may_declare_its_own_seeds() -> None:
-    """Issue 36 took Table III's alpha 0 and 0.1 rows and Table II's 300-node row (beside PEARL) to Table I's 10
+    """Table I takes Table III's alpha 0 and 0.1 rows and Table II's 300-node row (beside PEARL) to Table I's 10
     seeds: a run without --seeds plans each variant's declared seeds, --seeds still names them for every variant."""
     from pearl_paper.reproduce.scheduler import plan_runs, undeclared_seeds
 
@@ -771,7 +777,7 @@ def test_a_variant_may_declare_its_own_seeds() -> None:
 
 
 def test_remeasure_repeats_the_runs_own_meta_test_and_adds_draws(results: Path, tmp_path: Path) -> None:
-    """`reproduce remeasure` (Table I's larger meta-test, issue 36): on the run's own design it reproduces result.json's
+    """`reproduce remeasure` (Table I's larger meta-test): on the run's own design it reproduces result.json's
     numbers from model.zip alone; on a larger one the k = 0 row rests on every prior draw and the adapted pass's k = 0
     rows equal the prior pass's (common random numbers); a run with a record is skipped unless forced."""
     import json
@@ -892,3 +898,83 @@ def test_remeasure_measures_an_empty_or_unparsable_record_again(tmp_path: Path) 
         assert any(problem in line and "measuring it again" in line for line in said), said
     said = []
     assert remeasure_run(folder, tiny, echo=said.append) is None and not said  # a complete record: left as it is
+
+
+def test_reproduce_seeds_beyond_numpys_bound_are_refused(tmp_path: Path) -> None:
+    from pearl_paper.reproduce.cli import main
+    from pearl_paper.reproduce.layout import parse_seeds
+
+    assert parse_seeds("4294967295") == [4294967295]
+    for text in ("4294967296", "0,4294967290-4294967296"):
+        with pytest.raises(ValueError, match=r"--seeds: seeds must be integers in \[0, 4294967295\], got 4294967296"):
+            parse_seeds(text)
+    argv = ["status", "safe-point", "--seeds", "4294967296", "--results-dir", str(tmp_path)]
+    proc = run_in_process(main, *argv, check=False)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        "error: --seeds: seeds must be integers in [0, 4294967295], got 4294967296 (in '4294967296')"
+    ]
+
+
+# ----------------------------------------------------------------------------------------------
+# Reports: each result owns its place (no copy, no result in another run's folder)
+# ----------------------------------------------------------------------------------------------
+def _write_result(results: Path, seed: int, folder_seed: int | None = None, experiment_folder: str = "safe-point") -> Path:
+    path = results / experiment_folder / "safe-point" / "alpha-0" / f"seed{seed if folder_seed is None else folder_seed}"
+    summary = [{"k": 0, "n": 1, "return_mean": -1.0 - seed, "violation_rate": 0.0}]
+    result = {"experiment": "safe-point", "family": "safe-point", "variant": "alpha-0", "seed": seed, "budget_preset": "smoke"}
+    write_json_atomic(path / "result.json", {**result, "meta_test": {"summary": summary}})
+    return path / "result.json"
+
+
+def test_report_refuses_a_copy_of_a_result_naming_both_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    results, page = tmp_path / "results", tmp_path / "results.md"
+    real = _write_result(results, 0)
+    assert set(load_groups(results)[("safe-point", "smoke", "safe-point")]["alpha-0"]) == {0}
+    backup = _write_result(results, 0, experiment_folder="safe-point.bak")  # a backup copy beside the real folder
+    assert main(["report", "--results-dir", str(results), "--out", str(page)]) == 2
+    assert (
+        f"error: {real} and {backup} both hold the result of safe-point smoke safe-point alpha-0 seed0"
+        in capsys.readouterr().err
+    )
+    assert not page.exists()
+
+
+def test_report_and_status_refuse_a_result_in_another_runs_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    results = tmp_path / "results"
+    moved = _write_result(results, 0, folder_seed=1)  # seed1/result.json says seed 0 (beside seed0's: both files named)
+    with pytest.raises(
+        ValueError, match=rf"{moved} holds the result of another run: seed 'seed0' \(its folder says 'seed1'\)"
+    ):
+        load_groups(results)
+    assert main(["status", "safe-point", "--results-dir", str(results), "--seeds", "0-1", "--budget", "smoke"]) == 2
+    assert f"error: {moved} holds the result of another run" in capsys.readouterr().err
+
+
+def test_report_out_on_a_folder_and_status_of_a_missing_folder_are_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    results = tmp_path / "results"
+    _write_result(results, 0)
+    assert main(["report", "--results-dir", str(results), "--out", str(tmp_path)]) == 2
+    assert (
+        capsys.readouterr().err
+        == f"error: --out {tmp_path} is a folder: give the markdown file to write, e.g. {tmp_path / 'results.md'}\n"
+    )
+    assert not (tmp_path / "figures").exists()  # nothing written beside it
+    assert main(["status", "safe-point", "--results-dir", str(tmp_path / "nowhere")]) == 2
+    assert "error: --results-dir" in capsys.readouterr().err
+
+
+def test_results_dir_that_root_cannot_write_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    locked = tmp_path / "mount"
+    locked.mkdir()
+    _read_only_for_root(monkeypatch, locked)
+    argv = ["run", "safe-point", "--budget", "smoke", "--seeds", "0", "--results-dir", str(locked / "results")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.strip().splitlines() == [
+        f"error: --results-dir {locked / 'results'}: {locked} is not writable (Read-only file system)"
+    ]
+    assert list(locked.iterdir()) == []

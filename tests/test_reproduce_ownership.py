@@ -9,6 +9,7 @@ import signal
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -199,3 +200,34 @@ def test_plots_flags_are_one_line_errors(argv: list[str], message: str, capsys: 
         plots_main(argv)
     lines = capsys.readouterr().err.strip().splitlines()
     assert exit_info.value.code == 2 and message in lines[-1] and "Traceback" not in "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# The harness's run.lock: removed when the run ends, exclusive while it runs
+# ----------------------------------------------------------------------------------------------
+def test_the_run_lock_is_removed_when_the_run_ends_and_stays_exclusive(tmp_path: Path) -> None:
+    lock = tmp_path / "run.lock"
+    with run_lock(tmp_path):
+        assert lock.read_text() == f"{os.getpid()}\n" and lock_holder(tmp_path) == os.getpid()
+    assert not lock.exists() and lock_holder(tmp_path) is None  # guards against: left behind by every run
+    with pytest.raises(RuntimeError, match="the run failed"), run_lock(tmp_path):
+        raise RuntimeError("the run failed")
+    assert not lock.exists()
+    holding, release = threading.Event(), threading.Event()
+
+    def waiter() -> None:  # opens the lock file while the first owner holds it, then waits for it
+        with run_lock(tmp_path, wait_s=10):
+            holding.set()
+            release.wait(10)
+
+    thread = threading.Thread(target=waiter)
+    with run_lock(tmp_path):
+        thread.start()
+        time.sleep(0.3)
+    assert holding.wait(10)
+    assert lock_holder(tmp_path) == os.getpid()  # the waiter holds the file at the path, not the one removed
+    with pytest.raises(RunLockedError), run_lock(tmp_path, wait_s=0.0):
+        pass  # so a third process is refused
+    release.set()
+    thread.join(10)
+    assert not lock.exists()

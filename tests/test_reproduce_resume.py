@@ -5,6 +5,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -14,11 +19,14 @@ from pearl_paper.reproduce import checkpoint
 from pearl_paper.reproduce.cells import load_partway_curves
 from pearl_paper.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from pearl_paper.reproduce.cli import main
+from pearl_paper.reproduce.cli import main as reproduce_main
 from pearl_paper.reproduce.curve import CURVE_FILE, read_curve
 from pearl_paper.reproduce.layout import RESULT_FILE
 from pearl_paper.reproduce.report import build_report
-from pearl_paper.reproduce.runner import run_one
+from pearl_paper.reproduce.runner import RunStopped, run_one
+from sb3_pearl import PEARLPlus
 from sb3_pearl.budgets import load_budget
+from sb3_pearl.common.callbacks import StopOnSignalCallback
 from tests.conftest import write_model_zip
 
 RUN = ("safe-point", "safe-point", "alpha-0.1", 0, "smoke")
@@ -232,3 +240,132 @@ def test_an_empty_progress_snapshot_keeps_the_runs_progress_csv(tmp_path: Path, 
     logger.dump(360)
     logger.close()
     assert (tmp_path / "progress.csv").read_text() == log + "360,15\n"
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+# ----------------------------------------------------------------------------------------------
+# reproduce status: a checkpoint whose model zip is cut is damaged, not resumable
+# ----------------------------------------------------------------------------------------------
+def test_status_calls_a_checkpoint_with_a_truncated_model_damaged(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Guards against: 'resumable', and the resume failed with advice for train.py users (load best_model.zip ...)."""
+    from pearl_paper.experiments import get_experiment
+    from pearl_paper.reproduce.cli import resume_promise
+    from pearl_paper.reproduce.status import run_status
+
+    folder = tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
+    checkpoint = RunCheckpoint(folder)
+    checkpoint.folder.mkdir(parents=True)
+    model = checkpoint.folder / "model_240.zip"
+    write_model_zip(model, size=5000)
+    state = {"phase": "train", "files": {"model": model.name}, "num_timesteps": 240, "phases": {},
+             "spent": {"cpu_s": 24.0, "wall_s": 30.0}}  # fmt: skip
+    checkpoint.write_state(state)
+    experiment = get_experiment("safe-point")
+    assert [row.status for row in run_status(experiment, "smoke", [0], tmp_path, ["safe-point"], ["alpha-0.1"])] == [
+        "resumable"
+    ]
+    model.write_bytes(model.read_bytes()[:2500])  # a copy or a save cut short
+    (row,) = run_status(experiment, "smoke", [0], tmp_path, ["safe-point"], ["alpha-0.1"])
+    assert row.status == "damaged" and row.progress.startswith(f"checkpoint damaged: {model} is not a readable zip (")
+    args = ["safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0.1"]
+    assert reproduce_main(["status", *args, "--results-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "1 run(s) with a damaged checkpoint (named in the progress column): delete the run's checkpoint/ folder" in out
+    assert "0 finished, 0 resumable, 0 missing" in out
+    assert reproduce_main(["run", *args, "--results-dir", str(tmp_path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"seed0: stops at its resume, checkpoint damaged: {model} is not a readable zip (" in out
+    assert "1 would stop at a damaged checkpoint" in out
+    assert resume_promise(folder).startswith(f"checkpoint damaged: {model} is not a readable zip (")
+    with pytest.raises(ValueError, match=r"checkpoint damaged: .* is not a readable zip .*: delete .*checkpoint, or rerun"):
+        checkpoint.load_model(state, PEARLPlus, None)
+    write_model_zip(model)  # a buffer the state names but that is empty
+    checkpoint.write_state({**state, "files": {"model": model.name, "replay": "replay_240.pkl"}})
+    (checkpoint.folder / "replay_240.pkl").write_bytes(b"")
+    (row,) = run_status(experiment, "smoke", [0], tmp_path, ["safe-point"], ["alpha-0.1"])
+    assert row.status == "damaged" and row.progress == f"checkpoint damaged: {checkpoint.folder / 'replay_240.pkl'} is empty"
+
+
+# ----------------------------------------------------------------------------------------------
+# SIGTERM to a `reproduce run` child mid-training: it stops at the next gradient step or env step, saves a checkpoint
+# there, and the parent reports the run interrupted (resumable), not failed
+# ----------------------------------------------------------------------------------------------
+class StopAtGradientStep(StopOnSignalCallback):
+    """The child's stop callback, asked to stop at its ``at``-th gradient step (as the signal handler would)."""
+
+    def __init__(self, at: int) -> None:
+        super().__init__()
+        self.at, self.seen = at, 0
+
+    def on_gradient_step(self) -> bool:
+        self.seen += 1
+        self.requested = self.requested or self.seen == self.at
+        return super().on_gradient_step()
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    return run_one(*RUN, tmp_path_factory.mktemp("whole"), verbose=0)
+
+
+@pytest.mark.parametrize("where", ["env step", "gradient step"])
+def test_a_stopped_harness_run_saves_a_checkpoint_there_and_resumes_to_the_same_metrics(
+    where: str, uninterrupted_run: dict[str, Any], tmp_path: Path
+) -> None:
+    """Guards against: the child raised KeyboardInterrupt wherever it was and kept only its last periodic checkpoint (none in
+    the first 10 minutes). The periodic checkpoints here are 10 minutes apart: the stop's is the only one."""
+    if where == "env step":
+        stop = StopOnSignalCallback()
+
+        def ask(point: str, n: int) -> None:  # the signal handler's request, at env step 300 (inside an iteration)
+            stop.requested = stop.requested or (point == "step" and n == 300)
+
+        with pytest.raises(RunStopped, match=r"at 300 env steps"):
+            run_one(*RUN, tmp_path, verbose=0, interrupt=ask, stop=stop)
+    else:
+        stop = StopAtGradientStep(7)  # events come between two steps of an iteration: the 7th after its 8th step
+        with pytest.raises(RunStopped, match=r"^at 240 env steps and 8 gradient steps$"):
+            run_one(*RUN, tmp_path, verbose=0, stop=stop)
+    state = RunCheckpoint(tmp_path / FOLDER).read_state()
+    assert state is not None and state["phase"] == "train" and 0 < state["num_timesteps"] < 400
+    assert state["files"]["model"].startswith(f"model_{state['num_timesteps']}_u")  # the env steps and gradient steps
+    resumed = run_one(*RUN, tmp_path, verbose=0)
+    assert _metrics(resumed) == _metrics(uninterrupted_run)
+
+
+def test_sigterm_to_a_harness_child_saves_a_checkpoint_and_the_parent_says_interrupted(tmp_path: Path) -> None:
+    """Guards against: the child stopped at once (no checkpoint in its first 10 minutes) and the parent said FAILED
+    (exit 130)."""
+    from pearl_paper.reproduce.ownership import lock_holder
+
+    folder = tmp_path / FOLDER
+    command = [sys.executable, "-m", "pearl_paper.reproduce", "run", "safe-point", "--budget", "cpu", "--seeds", "0"]
+    command += ["--family", "safe-point", "--variants", "alpha-0.1", "--results-dir", str(tmp_path)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    parent = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.time() + 120
+        while "] learn " not in ((folder / "run.log").read_text() if (folder / "run.log").is_file() else ""):
+            assert parent.poll() is None and time.time() < deadline, "the child did not start training"
+            time.sleep(0.1)
+        time.sleep(1.0)  # inside the training (90,000 steps at the cpu preset)
+        child = lock_holder(folder)
+        assert child is not None
+        os.kill(child, signal.SIGTERM)
+        out, _ = parent.communicate(timeout=120)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+    log = (folder / "run.log").read_text()
+    state = RunCheckpoint(folder).read_state()
+    assert state is not None and state["phase"] == "train" and state["num_timesteps"] > 0, log[-2000:]
+    steps = f"{state['num_timesteps']:,}"
+    assert f"run-one: stopped by SIGTERM at {steps} env steps and " in log, log[-2000:]
+    assert parent.returncode == 130, out
+    assert (
+        f"safe-point safe-point alpha-0.1 seed0: interrupted (exit 143); the same `reproduce run` command resumes this "
+        f"run from its checkpoint at {steps} env steps in " in out
+    ), out
+    assert "0 done, 0 skipped, 0 failed, 1 interrupted" in out and "FAILED" not in out

@@ -1,4 +1,4 @@
-"""Table I's pre-written rules (issue 36) on hand-computed cases: the premise gate, the paired "safer prior" and
+"""Table I's pre-written rules on hand-computed cases: the premise gate, the paired "safer prior" and
 "adapted as good" verdicts, the re-measured record preferred on Highway-Merge, and the Walker extension rule."""
 
 from __future__ import annotations
@@ -146,7 +146,7 @@ def test_reductions_name_what_the_cpu_runs_cut_from_the_paper_budget() -> None:
 
 
 def test_tables_2_and_3_show_the_remeasured_numbers_beside_their_own(tmp_path: Path) -> None:
-    """Issue 36, run 1: the report shows Tables II and III's rows re-measured beside the runs' own numbers, paired
+    """The report shows Tables II and III's rows re-measured beside the runs' own numbers, paired
     with the table's reference on common seeds; a finished run without the record is named, not mixed in."""
     from pearl_paper.reproduce.remeasured_tables import remeasured_section
 
@@ -173,7 +173,7 @@ def test_tables_2_and_3_show_the_remeasured_numbers_beside_their_own(tmp_path: P
 
 
 def test_a_result_that_is_not_its_folders_run_is_refused(tmp_path: Path) -> None:
-    """Issue 40: a result.json copied into another seed's folder must not stand for that seed in the verdicts."""
+    """A result.json copied into another seed's folder must not stand for that seed in the verdicts."""
     (owner, name), _ = MERGE
     write_run(tmp_path, owner, "highway-merge", name, 0, summary(0.1, 0.0, -7.6), summary(0.1, 0.0, -7.6))
     folder = run_dir(tmp_path, RunKey(owner, "highway-merge", name, 0))

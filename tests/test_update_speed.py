@@ -1,4 +1,4 @@
-"""The fast gradient step (issue 38) computes the old one's math, and the default thread count yields to the user's.
+"""The fast gradient step computes the old one's math, and the default thread count yields to the user's.
 
 The old path is kept here as a reference: the critics' frozen passes through ``torch.func.functional_call``, the
 actor's two output heads as two products, Adam's single-tensor loop and SB3's per-tensor ``polyak_update``. Both run

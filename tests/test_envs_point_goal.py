@@ -8,6 +8,7 @@ import pytest
 from stable_baselines3.common.env_checker import check_env
 
 import sb3_pearl  # noqa: F401
+from tests.conftest import ENV_ID
 
 
 @pytest.mark.parametrize("env_id", ["PointGoalMeta-v0", "SafePointGoalMeta-v0"])
@@ -105,3 +106,16 @@ def test_rendering_rgb_array() -> None:
     frame = env.render()
     assert frame.shape == (128, 128, 3) and frame.dtype == np.uint8
     assert (frame == np.array([220, 60, 60], dtype=np.uint8)).all(axis=-1).sum() > 50  # the hazard is drawn
+
+
+def test_safe_point_refuses_a_hazard_over_the_start() -> None:
+    env = gym.make(ENV_ID).unwrapped
+    with pytest.raises(ValueError, match=r"the hazard \[0.1, 0.0\] covers the start \(0, 0\)"):
+        env.set_task({"goal": [0.0, 1.0], "hazard": [0.1, 0.0]})
+
+
+def test_a_nan_action_is_not_counted_as_a_safe_step() -> None:
+    env = gym.make(ENV_ID)  # guards against: stepped, position nan, cost 0.0
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="SafePointGoalMetaEnv.step: the action"):
+        env.step(np.array([np.nan, 0.0], dtype=np.float32))
