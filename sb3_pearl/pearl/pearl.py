@@ -21,21 +21,16 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
+from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.callbacks import gradient_step_event
 from sb3_pearl.common.divergence import NonFiniteUpdateGuard
-from sb3_pearl.common.meta_algorithm import MetaAlgorithm
+from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition
 from sb3_pearl.common.networks import polyak_update_foreach
-from sb3_pearl.common.persistence import (
-    ReplayBufferSaveLoadMixin,
-    check_buffer_tasks,
-    read_replay_buffer,
-    saved_arguments,
-)
+from sb3_pearl.common.persistence import check_buffer_tasks, read_replay_buffer, save_replay_buffer_file, saved_arguments
 from sb3_pearl.common.precision import resolve_bf16
-from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, TrainingPlan
+from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, PosteriorSample, TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
-from sb3_pearl.pearl.adaptation import PosteriorAdaptationMixin
 from sb3_pearl.pearl.arguments import check_pearl_arguments
 from sb3_pearl.pearl.collection import (
     OpenIteration,
@@ -53,7 +48,7 @@ from sb3_pearl.pearl.returns import finish_open_pieces
 SelfPEARL = TypeVar("SelfPEARL", bound="PEARL")
 
 
-class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
+class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
     """
     PEARL (Rakelly et al. 2019, arXiv:1903.08254): off-policy meta-RL with probabilistic context variables.
 
@@ -241,6 +236,11 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             self._setup_model()
 
     @property
+    def latent_dim(self) -> int:
+        """Size of z."""
+        return self.policy.latent_dim
+
+    @property
     def uses_prior_term(self) -> bool:
         """Whether the actor is also trained on prior latents z0 (PEARL+ with ``prior_coef > 0``)."""
         return self.prior_coef > 0
@@ -317,6 +317,18 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             prior_conservative_weight=self.prior_conservative_weight,
             target_entropy=self.target_entropy,
         )
+
+    def sample_posterior(self, context: th.Tensor, sample: bool = True) -> PosteriorSample:
+        """
+        Task inference, the one place where a context becomes a posterior and a z (losses, collection, adaptation).
+
+        :param context: context transitions (T, N, context_dim)
+        :param sample: draw z from q(z | c) with the reparameterisation trick, or take its mean
+        :return: posterior mean and variance and z, each (T, latent_dim)
+        """
+        mean, var = self.policy.encoder.posterior(context)
+        z = mean + var.sqrt() * th.randn_like(mean) if sample else mean
+        return PosteriorSample(mean, var, z)
 
     def _compute_losses(self, replay: MetaReplaySamples, context: th.Tensor, z0: th.Tensor) -> PEARLLosses:
         """
@@ -529,22 +541,72 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             if log_interval and self.n_iterations % log_interval == 0:
                 self.dump_logs()
 
-    def _setup_learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        reset_num_timesteps: bool = True,
-        tb_log_name: str = "run",
-        progress_bar: bool = False,
-    ) -> tuple[int, BaseCallback]:
-        if self._open_iteration is not None and (reset_num_timesteps or self._last_obs is None):
+    def _before_env_reset(self) -> None:
+        """``learn()`` resets the envs: an iteration left open has its trajectories cut and its segments requeued."""
+        if self._open_iteration is not None:
             finish_open_pieces(self, self._open_iteration)  # the envs are reset: their trajectories are cut
             requeue_open_segments(self._open_iteration, self.n_envs)  # the envs are reset: their segments start anew
-        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def training_plan(self, total_timesteps: int) -> TrainingPlan:
         """What ``learn(total_timesteps)`` will still collect and train (:func:`~sb3_pearl.pearl.collection.plan_training`)."""
         return plan_training(self, total_timesteps)
+
+    # ------------------------------------------------------------------------------------------
+    # Adaptation API (meta-test): task inference from the transitions observed on a new task
+    # ------------------------------------------------------------------------------------------
+    def reset_adaptation(self) -> None:
+        """Forget the observed context and draw z from the prior, held until :meth:`adapt` (k = 0)."""
+        self._adapt_context = []
+        self.policy.current_z = th.randn(self.latent_dim, device=self.device)
+
+    def resample_prior(self) -> None:
+        """A fresh z from the prior, the context kept (the reference's exploration trajectories, each with its own z)."""
+        self.policy.current_z = th.randn(self.latent_dim, device=self.device)
+
+    def observe(self, obs: np.ndarray, action: Any, reward: float, next_obs: np.ndarray, done: bool) -> None:
+        """
+        Record one transition of the new task (env-space action, as returned by :meth:`predict`).
+
+        :param obs: observation before the action, shape (obs_dim,)
+        :param action: the action taken (env units for Box, an index for Discrete)
+        :param reward: reward received
+        :param next_obs: observation after the action
+        :param done: whether the episode ended (not used by the encoder)
+        """
+        obs, next_obs = check_observed_transition(self.observation_space, obs, reward, next_obs)  # (obs_dim,) each
+        self._adapt_context.append(
+            (obs, stored_action(self.action_space, action), float(np.asarray(reward).reshape(-1)[0]), next_obs)
+        )
+
+    def _adaptation_context(self) -> th.Tensor:
+        """Everything observed since the last reset as one task's context, (1, N, context_dim)."""
+        obs, actions, rewards, next_obs = (np.stack(column) for column in zip(*self._adapt_context))
+        tensors = [
+            th.as_tensor(a, device=self.device, dtype=th.float32)[None] for a in (obs, actions, rewards[:, None], next_obs)
+        ]
+        return self.policy.make_context(*tensors)
+
+    def infer_posterior(self) -> tuple[th.Tensor, th.Tensor]:
+        """Posterior mean and variance (each (latent_dim,)) from everything observed since the last reset."""
+        if not self._adapt_context:
+            return th.zeros(self.latent_dim, device=self.device), th.ones(self.latent_dim, device=self.device)
+        with th.no_grad():
+            posterior = self.sample_posterior(self._adaptation_context(), sample=False)
+        return posterior.mean[0], posterior.var[0]
+
+    def adapt(self, sample_z: bool = True) -> None:
+        """
+        Infer the posterior from all observed transitions and act with a new z from it.
+
+        :param sample_z: draw z from the posterior (the reference's meta-test) or use its mean
+        """
+        if not self._adapt_context:  # nothing observed: a new draw from the prior
+            self.policy.current_z = (
+                th.randn(self.latent_dim, device=self.device) if sample_z else th.zeros(self.latent_dim, device=self.device)
+            )
+            return
+        with th.no_grad():
+            self.policy.current_z = self.sample_posterior(self._adaptation_context(), sample=sample_z).z[0]
 
     # ------------------------------------------------------------------------------------------
     # Save / load
@@ -624,6 +686,15 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
                 f"prior_coef must be 0 for PEARL (it has no prior term), got {prior_coef!r}: a PEARL+ model loads with "
                 "PEARLPlus.load"
             )
+
+    def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
+        """
+        Save the per-task RL and context buffers, atomically, with the training tasks recorded in them
+        (:func:`~sb3_pearl.common.persistence.save_replay_buffer_file`).
+
+        :param path: the pickle (``.pkl`` is appended when the path has no suffix, as in SB3) or an open binary file
+        """
+        save_replay_buffer_file(self.replay_buffer, self.train_tasks, path, self.verbose)
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """
