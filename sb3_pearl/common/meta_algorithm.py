@@ -456,24 +456,51 @@ class MetaAlgorithm(BaseAlgorithm):
             ) from None
 
     @classmethod
-    def _saved_class_name(cls, data: dict[str, Any]) -> str:
-        """The class that wrote a zip whose data holds :attr:`saved_data_keys` (subclasses tell their variants apart)."""
-        return cls.__name__
+    def _variant_of(cls, data: dict[str, Any]) -> str | None:
+        """
+        What a zip holds when it is this class's and its parent cannot load it (a subclass that adds what its parent
+        would drop says so here: PEARLPlus, for a zip with a prior term); None: its parent loads the zip too. Asked
+        only of the classes that define it.
+
+        :param data: a zip's ``data`` entry
+        :return: the model the zip holds, for the message (e.g. ``"a PEARL+ model (prior_coef=0.1, ...)"``), or None
+        """
+        return None
+
+    @staticmethod
+    def _variant_writer(data: dict[str, Any]) -> tuple[type[MetaAlgorithm], str] | None:
+        """The most derived algorithm class whose :meth:`_variant_of` claims a zip's data, with its claim (None: none)."""
+        found: tuple[type[MetaAlgorithm], str] | None = None
+        pending: list[type[MetaAlgorithm]] = MetaAlgorithm.__subclasses__()
+        while pending:
+            algorithm = pending.pop()
+            claim = algorithm._variant_of(data) if "_variant_of" in vars(algorithm) else None
+            if claim is not None and (found is None or issubclass(algorithm, found[0])):
+                found = (algorithm, claim)
+            pending.extend(algorithm.__subclasses__())
+        return found
 
     @classmethod
     def _check_saved_data(cls, data: dict[str, Any], path: str) -> None:
         """
-        Raise a clear error unless a zip's data fits this class (subclasses add their own checks).
+        Raise a clear error unless a zip's data fits this class: it holds :attr:`saved_data_keys` (else the message
+        names the class that wrote it), and no subclass that this class is not claims it (:meth:`_variant_of`).
 
         :param data: the zip's ``data`` entry (:func:`read_model_data`)
         :param path: the zip, for the message
         """
         missing = [key for key in cls.saved_data_keys if key not in data]
+        variant = cls._variant_writer(data)
         if not missing:
+            if variant is not None and not issubclass(cls, variant[0]):
+                writer, held = variant[0].__name__, variant[1]
+                raise ValueError(
+                    f"{path} holds {held}: load it with {writer}.load; {cls.__name__}.load would drop what {writer} adds"
+                )
             return
         writers = [writer for writer in _SIGNATURES.values() if all(key in data for key in writer.saved_data_keys)]
         if writers:
-            name = writers[-1]._saved_class_name(data)
+            name = variant[0].__name__ if variant is not None and issubclass(variant[0], writers[-1]) else writers[-1].__name__
             raise ValueError(f"{path} holds a {name} model, not a {cls.__name__} one: load it with {name}.load")
         raise ValueError(
             f"{path} is not a {cls.__name__} model: it lacks {missing} and its policy is {saved_policy_name(data)}. "

@@ -868,22 +868,6 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
         return state_dicts, ["ent_coef_tensor"]
 
     @classmethod
-    def _saved_class_name(cls, data: dict[str, Any]) -> str:
-        prior_coef, mode = data.get("prior_coef", 0.0), data.get("prior_critic_mode", "none")
-        return "PEARLPlus" if prior_coef != 0.0 or mode != "none" else "PEARL"
-
-    @classmethod
-    def _check_saved_data(cls, data: dict[str, Any], path: str) -> None:
-        super()._check_saved_data(data, path)
-        prior_coef, mode = data.get("prior_coef", 0.0), data.get("prior_critic_mode", "none")
-        # PEARL.load refuses a PEARL+ zip (it would drop the prior term); PEARLPlus.load takes a PEARL one (prior_coef 0).
-        if cls._saved_class_name(data) == "PEARLPlus" and "PEARLPlus" not in {base.__name__ for base in cls.__mro__}:
-            raise ValueError(
-                f"{path} holds a PEARL+ model (prior_coef={prior_coef}, prior_critic={mode!r}): load it with PEARLPlus.load; "
-                f"{cls.__name__}.load would drop its prior term and prior critic"
-            )
-
-    @classmethod
     def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
         """
         The constructor's checks (:func:`~sb3_pearl.pearl.arguments.check_pearl_arguments`) on a loaded model's
