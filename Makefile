@@ -25,7 +25,7 @@ test-slow: setup
 	$(BIN)/python -m pytest -q -m slow
 
 demo: setup
-	$(BIN)/python -m sb3_pearl.demo
+	$(BIN)/python -m pearl_paper.demo
 
 docs: setup
 	# the documentation site (Sphinx + MyST, API pages from the docstrings); a warning fails the build
@@ -36,7 +36,7 @@ lint: setup
 	$(BIN)/ruff format --check .
 
 type: setup
-	$(BIN)/mypy sb3_pearl
+	$(BIN)/mypy sb3_pearl pearl_paper
 
 bench: setup
 	$(BIN)/python benchmarks/throughput.py

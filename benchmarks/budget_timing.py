@@ -29,9 +29,9 @@ import gymnasium as gym
 import torch as th
 
 import sb3_pearl  # noqa: F401  (registers the task families)
+from pearl_paper.experiments.families import get_family
+from sb3_pearl.budgets import load_budget, model_kwargs, preset_entries
 from sb3_pearl.evaluation.meta_test import meta_test
-from sb3_pearl.experiments.budgets import load_budget, model_kwargs, preset_entries
-from sb3_pearl.experiments.families import get_family
 from sb3_pearl.registry import algorithm_class
 
 

@@ -72,7 +72,7 @@ FAMILIES: dict[str, tuple[EnvFactory, str, EnvFactory]] = {
         lambda: gym.make("PointGoalMeta-v0"),
     ),
     "PointMazeGoalMeta-v0": (lambda: gym.make("PointMazeGoalMeta-v0"), "PointMaze_MediumDense-v3", _point_maze_base),
-    # target ratio >= 10 (issue 3): the meta env replaces highway-env's hot spots, see docs/highway_merge.md
+    # target ratio >= 10: the meta env replaces highway-env's hot spots, see docs/highway_merge.md
     "HighwayMergeMeta-v0": (lambda: gym.make("HighwayMergeMeta-v0"), "merge-v0 (10 Hz / 2 Hz)", _stock_merge),
 }
 

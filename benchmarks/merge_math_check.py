@@ -1,7 +1,7 @@
-"""Issue 38's constraint on real runs: Highway-Merge `cpu` runs trained after the faster step keep their meta-test.
+"""The faster step's constraint on real runs: Highway-Merge `cpu` runs trained after it keep their meta-test.
 
-Issue 38 changed the PEARL(+) step's code, not its math (commit 4f043cd; ``tests/test_update_speed.py`` compares 100
-updates of the old and the new path). Its constraint adds that "a Highway-Merge `cpu` run's meta-test stays inside
+The faster step changed the PEARL(+) step's code, not its math (commit 4f043cd; ``tests/test_update_speed.py`` compares
+100 updates of the old and the new path). Its constraint adds that "a Highway-Merge `cpu` run's meta-test stays inside
 its interval". Some committed Highway-Merge rows have seeds trained on both sides of that commit (each result.json
 records the commit it was trained from): this script splits every such row by whether its training commit contains
 4f043cd, and prints, on the re-measured meta-test (1,000 k = 0 trajectories a seed):
@@ -28,9 +28,9 @@ import statistics
 import subprocess
 from collections import defaultdict
 
-from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE
-from sb3_pearl.reproduce.formatting import format_interval
-from sb3_pearl.reproduce.stats import Interval, t_interval, t_quantile
+from pearl_paper.experiments.table1_rules import MERGE_REMEASURE
+from pearl_paper.reproduce.formatting import format_interval
+from pearl_paper.reproduce.stats import Interval, t_interval, t_quantile
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MEASURES = (("k = 0 violation, %", 0, "violation_rate", 100.0, 1), ("k = 5 return", 5, "return_mean", 1.0, 2))

@@ -1,4 +1,4 @@
-"""Wall time of ``python -m sb3_pearl.reproduce run`` with ``--backend local`` against ``--backend ray`` (docs/scale.md).
+"""Wall time of ``python -m pearl_paper.reproduce run`` with ``--backend local`` against ``--backend ray`` (docs/scale.md).
 
 Each repeat runs the same command once per backend, alternating, into fresh results folders: the whole command
 (interpreter start, planning, and for Ray: starting a local Ray, the trial actors, the Tune loop, shutting Ray down),
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def timed_run(backend: str, args: argparse.Namespace, results_dir: Path) -> float:
-    command = [sys.executable, "-m", "sb3_pearl.reproduce", "run", "safe-point", "--budget", "smoke"]
+    command = [sys.executable, "-m", "pearl_paper.reproduce", "run", "safe-point", "--budget", "smoke"]
     command += ["--seeds", args.seeds, "--family", *args.families, "--variants", *args.variants]
     command += ["--results-dir", str(results_dir), "--backend", backend, "--jobs", str(args.jobs)]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}

@@ -1,4 +1,4 @@
-"""Cost of PEARL's reference cheetah-vel configuration on this CPU, and of its reductions (issue 19, the ``cpu`` preset).
+"""Cost of PEARL's reference cheetah-vel configuration on this CPU, and of its reductions (the ``cpu`` preset's).
 
 For each configuration (RL rows per task, network width), on one torch thread: seconds per gradient step
 (``meta_batch`` 16 tasks, 100 context rows each, the configuration's rows and widths) and per training env step
@@ -24,7 +24,7 @@ import torch as th
 import sb3_pearl  # noqa: F401  (registers the envs)
 from benchmarks.budget_timing import pearl_gradient_steps
 from sb3_pearl import PEARL
-from sb3_pearl.experiments.budgets import load_budget, model_kwargs
+from sb3_pearl.budgets import load_budget, model_kwargs
 
 CONFIGS = ((256, 300), (128, 300), (64, 300), (64, 256), (64, 200), (32, 300))
 

@@ -6,7 +6,7 @@ alternated in ``--repeats`` rounds (a neighbour's load hits them alike): ``--num
 :func:`sb3_pearl.common.threads.default_num_threads`). Prints fps (median of the rounds), the count the default
 picked, and the default's fps as a ratio of the best explicit setting (target >= 0.9), with the machine's load.
 
-Configurations: ``safe-point`` (the zoo's SafePointGoalMeta-v0 PEARL+ entry, 64x64 networks: issue 38's example),
+Configurations: ``safe-point`` (the zoo's SafePointGoalMeta-v0 PEARL+ entry, 64x64 networks: the small configuration),
 ``walker-cpu`` (the `cpu` preset's Walker2D-vel PEARL+ entry, 2x128) and ``paper-step`` (PEARL+ gradient steps at
 the paper's sizes, 3x300: gradient steps per second instead of env steps, from benchmarks/throughput.py).
 
@@ -55,7 +55,7 @@ else:
         entry["policy_kwargs"] = eval(entry["policy_kwargs"], {})  # a literal dict in the project's own YAML
         env_id = "SafePointGoalMeta-v0"
     else:
-        from sb3_pearl.experiments.budgets import load_budget, model_kwargs
+        from sb3_pearl.budgets import load_budget, model_kwargs
         entry = model_kwargs(load_budget("cpu", "walker2d-vel", "pearlplus")["kwargs"])
         env_id = "Walker2dVelMeta-v0"
     model = PEARLPlus("MlpPolicy", gym.make(env_id), seed=0, **entry)

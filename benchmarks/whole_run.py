@@ -37,7 +37,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 import sb3_pearl
 from sb3_pearl import PEARLPlus
-from sb3_pearl.experiments.budgets import load_budget, model_kwargs
+from sb3_pearl.budgets import load_budget, model_kwargs
 family, env_id, steps = sys.argv[1], sys.argv[2], int(sys.argv[3])  # sys.argv[4]: "one" or "default" threads
 budget = load_budget("cpu", family, "pearlplus")
 model = PEARLPlus("MlpPolicy", make_vec_env(env_id, n_envs=1, seed=0), seed=0, **model_kwargs(budget["kwargs"]))

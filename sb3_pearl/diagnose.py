@@ -42,7 +42,9 @@ from sb3_pearl.pearl.diagnostics import (
     compute_diagnostics,
     format_diagnostics,
 )
+from sb3_pearl.zoo.model_checks import check_saved_model_family
 from sb3_pearl.zoo.safe_config import load_run_yaml
+from sb3_pearl.zoo.usage import UsageError
 
 LAYOUT_HELP = (
     "expected a run folder with result.json and model.zip (reproduction harness: results/<exp>/<family>/<variant>/seed<N>/), "
@@ -133,13 +135,15 @@ def find_run(path: str | os.PathLike[str], env_id: str | None = None) -> tuple[P
     return model_path, env_id, env_kwargs
 
 
-def load_model(model_path: str | Path, env: gym.Env, device: str = "auto") -> PEARL:
+def load_model(model_path: str | Path, env: gym.Env, device: str = "auto", env_id: str | None = None) -> PEARL:
     """
     Load a PEARL or PEARL+ zip with its own class (PEARL when it has no prior critic).
 
     :param model_path: the zip
     :param env: the env it is used with
     :param device: torch device
+    :param env_id: the env's id: a model of another task family is then refused with a message naming the
+        ``--env-id`` to pass (without it, the constructor's error)
     :return: the model
     """
     try:
@@ -148,6 +152,11 @@ def load_model(model_path: str | Path, env: gym.Env, device: str = "auto") -> PE
         raise RunFolderError(str(error)) from None
     if "prior_critic_mode" not in data or "prior_coef" not in data:
         raise RunFolderError(f"{model_path} is not a PEARL / PEARL+ model: the diagnostics need one")
+    if env_id is not None:
+        try:
+            check_saved_model_family(str(model_path), env, env_id, "--env-id")
+        except UsageError as error:
+            raise RunFolderError(str(error)) from None
     cls = PEARL if data["prior_critic_mode"] == "none" else PEARLPlus
     return cls.load(model_path, env=env, device=device)
 
@@ -231,7 +240,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     try:
         model_path, env_id, env_kwargs = find_run(args.path, args.env_id)
         env = gym.make(env_id, **env_kwargs)
-        model = load_model(model_path, env, args.device)
+        model = load_model(model_path, env, args.device, env_id)
     except RunFolderError as error:
         p.error(str(error))
     if args.paths:

@@ -7,8 +7,8 @@
   variant overrides are checked against it);
 - :data:`ACTIVATIONS`: the activation names a preset or a YAML entry may give for ``policy_kwargs.activation_fn``.
 
-It imports the algorithms and nothing else of the project's tools, so ``experiments/`` (data and declarations),
-``zoo/`` and ``reproduce/`` all read it without importing each other (tests/test_layout.py).
+It imports the algorithms and nothing else of the project's tools, so the budget presets' loader, ``zoo/`` and the
+paper's harness beside the package (``pearl_paper``) all read it without importing each other (tests/test_layout.py).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Velocity tracking of a trained model on a velocity family (Walker2D-vel, HalfCheetah-Vel).
 
 The competence criterion of these families is the mean absolute error of the forward velocity per step of the
-posterior trajectories (``sb3_pearl.experiments.families``). That one number mixes two failures that call for
-different remedies:
+posterior trajectories (declared by the paper's harness, ``pearl_paper.experiments.families``). That one number mixes
+two failures that call for different remedies:
 
 - the *mean-speed error* ``|mean_t v_t - v*|`` of each trajectory: the policy walks at the wrong speed (a
   locomotion skill not learnt, or a task not inferred);

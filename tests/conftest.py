@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import contextlib
 import io
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -100,7 +102,7 @@ class Completed:
 
 def run_in_process(main: Callable[[list[str]], Any], *args: str, check: bool = True) -> Completed:
     """
-    Call a command-line entry point (``sb3_pearl.zoo.train``, ``enjoy``, ``sb3_pearl.reproduce.cli.main``, ...) in this
+    Call a command-line entry point (``sb3_pearl.zoo.train``, ``enjoy``, ``pearl_paper.reproduce.cli.main``, ...) in this
     process with ``args`` as its command line, and return its exit status and output.
 
     A new interpreter costs ~6 s before the first line of work (torch, rl_zoo3 and highway-env imports, and torch's
@@ -129,6 +131,29 @@ def run_in_process(main: Callable[[list[str]], Any], *args: str, check: bool = T
     if check and code != 0:
         raise AssertionError(f"{' '.join(args)} exited {code}:\n{completed.stdout[-3000:]}\n{completed.stderr[-3000:]}")
     return completed
+
+
+def write_model_zip(path: Path, size: int | None = None) -> None:
+    """
+    A minimal readable model zip (a ``data`` entry holding a JSON dict): a stand-in for a checkpoint's model where a test
+    is about something else than the model (``reproduce status`` calls a zip it cannot read damaged).
+
+    :param path: the zip to write
+    :param size: pad the zip to exactly this many bytes (a checkpoint of a given size on disk)
+    """
+
+    def write(padding: int) -> None:
+        with zipfile.ZipFile(path, "w") as archive:
+            archive.writestr("data", "{}")
+            if padding:
+                archive.writestr("policy.pth", b"m" * padding)
+
+    write(0)
+    if size is not None:
+        write(1)
+        overhead = path.stat().st_size - 1
+        write(size - overhead)
+        assert path.stat().st_size == size
 
 
 class CountSteps(BaseCallback):

@@ -27,7 +27,7 @@ def test_welch_interval_without_spread_or_seeds() -> None:
 
 def test_holds_says_when_there_is_no_interval() -> None:
     from benchmarks.merge_math_check import holds
-    from sb3_pearl.reproduce.stats import Interval
+    from pearl_paper.reproduce.stats import Interval
 
     assert holds(Interval(0.0, -1.0, 1.0, 3), 0.0) == "yes" and holds(Interval(2.0, 1.0, 3.0, 3), 0.0) == "NO"
     assert holds(welch([2.0], [1.0, 3.0]), 0.0) == "-"  # one seed on a side: no interval, no verdict

@@ -15,10 +15,10 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 import sb3_pearl  # noqa: F401  (registers the families)
+from pearl_paper.reproduce.checkpoint import RunCheckpoint
 from sb3_pearl import PEARLPlus
 from sb3_pearl.common import env_state
 from sb3_pearl.common.env_state import EnvStateError, capture_env_state, restore_env_state
-from sb3_pearl.reproduce.checkpoint import RunCheckpoint
 from tests.conftest import TINY
 
 

@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_pearl.reproduce.cli import main as reproduce_main
-from sb3_pearl.reproduce.layout import cpu_info
+from pearl_paper.reproduce.cli import main as reproduce_main
+from pearl_paper.reproduce.layout import cpu_info
 from sb3_pearl.zoo import train
 from tests.conftest import TINY_ZOO_PARAMS, run_in_process
 

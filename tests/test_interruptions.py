@@ -22,6 +22,7 @@ from sb3_pearl.evaluation.progress import TrainingProgressCallback
 from sb3_pearl.zoo.flags import parse_project_flags
 from sb3_pearl.zoo.interruptions import StopOnSignalCallback
 from sb3_pearl.zoo.usage import UsageError
+from tests.conftest import write_model_zip
 
 NOISY_ENV = "NoisyResetSafePointGoalMeta-v0"  # its resets draw from the env's RNG: the env state must resume too
 TOTAL = 660  # tiny PEARL: iteration 0 = 240 env steps and 5 gradient steps, then 140 env steps and 5 per iteration
@@ -206,8 +207,8 @@ def test_an_older_checkpoint_is_compacted_in_place_and_loads_the_same_buffer(tmp
     the filled rows only; the state names the new parts, the old ones are gone, and loading it gives the same buffer."""
     import pickle
 
+    from pearl_paper.reproduce.checkpoint import PART_BYTES, RunCheckpoint
     from sb3_pearl import FineTune
-    from sb3_pearl.reproduce.checkpoint import PART_BYTES, RunCheckpoint
 
     kwargs: dict[str, Any] = dict(n_train_tasks=4, n_test_tasks=2, learning_starts=10, batch_size=8, seed=0)
     model = FineTune("MlpPolicy", NOISY_ENV, buffer_size=200_000, **kwargs).learn(150)
@@ -256,20 +257,20 @@ def test_a_buffer_that_keeps_next_observations_in_place_is_not_compacted() -> No
 def test_an_interrupted_harness_run_says_whether_a_checkpoint_exists(tmp_path: Path) -> None:
     """A child of `reproduce run` stopped before its first checkpoint promised a resume from a checkpoint that did not
     exist; it now says which of the two the same command will do."""
-    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-    from sb3_pearl.reproduce.cli import resume_promise
+    from pearl_paper.reproduce.checkpoint import RunCheckpoint
+    from pearl_paper.reproduce.cli import resume_promise
 
     assert "no checkpoint was written yet" in resume_promise(tmp_path) and "starts this run anew" in resume_promise(tmp_path)
     checkpoint = RunCheckpoint(tmp_path)
     checkpoint.folder.mkdir()
-    (checkpoint.folder / "model_1200.zip").write_bytes(b"zip")
+    write_model_zip(checkpoint.folder / "model_1200.zip")
     checkpoint.write_state({"phase": "train", "files": {"model": "model_1200.zip"}, "num_timesteps": 1200})
     assert resume_promise(tmp_path).endswith("resumes this run from its checkpoint at 1,200 env steps")
 
 
 def test_the_demo_names_an_empty_or_foreign_remeasured_record(tmp_path: Path) -> None:
     """`make demo` on a zero-byte meta_test_large.json gave a JSON traceback naming no file."""
-    from sb3_pearl import demo
+    from pearl_paper import demo
 
     (tmp_path / "meta_test_large.json").write_text("")
     with pytest.raises(ValueError, match=r"meta_test_large.json is not valid JSON .*truncated or edited"):

@@ -1,8 +1,10 @@
 """The dependency rule of docs/design.md, checked on the import graph of every module (function-level imports included).
 
-Rooms are ranked; a module imports its own room or a lower-ranked one, never a sibling of its rank (the algorithms
-never import each other), except the tools on top, which may use one another as long as no cycle forms. No import
-cycle anywhere: neither between modules nor between rooms.
+Two packages: the library ``sb3_pearl`` and, above it, the paper's reproduction ``pearl_paper`` (in the repository,
+not in the wheel). Rooms are ranked; a module imports its own room or a lower-ranked one, never a sibling of its rank
+(the algorithms never import each other), except the tools on top of each package, which may use one another as long
+as no cycle forms. Every room of ``pearl_paper`` ranks above every room of ``sb3_pearl``, so the library never
+imports the paper's harness. No import cycle anywhere: neither between modules nor between rooms.
 """
 
 from __future__ import annotations
@@ -18,8 +20,11 @@ import pytest
 
 from sb3_pearl import PEARL, PEARLPlus
 
-PACKAGE = Path(__file__).resolve().parent.parent / "sb3_pearl"
-TOOLS = ("zoo", "reproduce", "plots", "demo", "diagnose", "tracking", "train", "enjoy")
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = (ROOT / "sb3_pearl", ROOT / "pearl_paper")
+LIBRARY_TOOLS = ("zoo", "plots", "diagnose", "tracking", "train", "enjoy")
+HARNESS_TOOLS = ("pearl_paper.reproduce", "pearl_paper.demo")
+TOOLS = LIBRARY_TOOLS + HARNESS_TOOLS
 RANK = {
     "envs": 0,  # a family is usable as a plain Gymnasium env
     "config": 0,  # YAML data
@@ -31,28 +36,37 @@ RANK = {
     "oracle": 3.5,  # Fine-Tune's soft actor-critic, told the task: above finetune, below the package
     "__init__": 4,  # `import sb3_pearl`: the algorithms and the env registration
     "registry": 4,
-    "experiments": 5,  # data and declarations
-    **dict.fromkeys(TOOLS, 6),
+    "budgets": 5,  # the budget presets' loader: read by train.py --budget and by the paper's harness
+    **dict.fromkeys(LIBRARY_TOOLS, 6),
+    # the paper's reproduction, above the whole library
+    "pearl_paper": 7,  # the package's docstring only
+    "pearl_paper.experiments": 7,  # the paper's experiments: data and declarations
+    **dict.fromkeys(HARNESS_TOOLS, 8),
 }
 
 
 def module_name(path: Path) -> str:
-    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-MODULES = {module_name(path): path for path in sorted(PACKAGE.rglob("*.py"))}
+MODULES = {module_name(path): path for package in PACKAGES for path in sorted(package.rglob("*.py"))}
 
 
 def room(module: str) -> str:
-    """The room of a module: its first folder (or file) below ``sb3_pearl``; the package itself is ``__init__``."""
+    """
+    The room of a module: its first folder (or file) below ``sb3_pearl``, the package itself being ``__init__``; in
+    ``pearl_paper``, the first folder (or file) with the package's name before it, the package itself ``pearl_paper``.
+    """
     parts = module.split(".")
+    if parts[0] == "pearl_paper":
+        return ".".join(parts[:2])
     return parts[1] if len(parts) > 1 else "__init__"
 
 
 def runtime_imports(module: str, type_only_too: bool = False) -> set[str]:
     """
-    The sb3_pearl modules ``module`` imports outside ``if TYPE_CHECKING:`` blocks (with ``type_only_too``, inside them
+    The project's modules ``module`` imports outside ``if TYPE_CHECKING:`` blocks (with ``type_only_too``, inside them
     too), function-level imports included.
     """
     path = MODULES[module]
@@ -131,8 +145,30 @@ def test_dependency_rule(module: str) -> None:
         there = room(target)
         if there == home:
             continue
-        allowed = RANK[there] < RANK[home] or (home in TOOLS and there in TOOLS)
+        allowed = (
+            RANK[there] < RANK[home]
+            or (home in LIBRARY_TOOLS and there in LIBRARY_TOOLS)
+            or (home in HARNESS_TOOLS and there in HARNESS_TOOLS)
+        )
         assert allowed, f"{module} (room {home}, rank {RANK[home]}) imports {target} (room {there}, rank {RANK[there]})"
+
+
+def test_the_library_imports_nothing_of_the_paper() -> None:
+    """The rank puts the paper's harness above the library; said once more as the rule it is, on the static graph."""
+    found = sorted(
+        (module, target)
+        for module, targets in GRAPH.items()
+        if module.startswith("sb3_pearl")
+        for target in targets
+        if target.startswith("pearl_paper")
+    )
+    assert found == [], found
+
+
+def test_the_harness_ranks_above_the_library() -> None:
+    library = [RANK[r] for r in {room(m) for m in MODULES if m.startswith("sb3_pearl")}]
+    harness = [RANK[r] for r in {room(m) for m in MODULES if m.startswith("pearl_paper")}]
+    assert harness and min(harness) > max(library)
 
 
 def test_no_import_cycle_between_modules() -> None:
@@ -181,25 +217,25 @@ def test_pearlplus_extends_pearl() -> None:
 @pytest.mark.parametrize("package", ["sb3_pearl.pearl", "sb3_pearl.finetune", "sb3_pearl.maml"])
 def test_an_algorithm_imports_only_algorithm_code(package: str) -> None:
     """Importing an algorithm (in a fresh interpreter) loads none of its observers: no module of the diagnostics, the
-    evaluation layer, the reproduction harness or the zoo CLI (issue 39, seam 4)."""
+    evaluation layer, the reproduction harness or the zoo CLI."""
     import subprocess
     import sys
 
     code = (
         f"import sys, {package}\n"
-        "print(' '.join(m for m in sys.modules if m.startswith('sb3_pearl.') and any(part in m.split('.') for part in "
-        "('diagnostics', 'evaluation', 'reproduce', 'zoo'))))"
+        "print(' '.join(m for m in sys.modules if m.startswith('pearl_paper') or m.startswith('sb3_pearl.') and any("
+        "part in m.split('.') for part in ('diagnostics', 'evaluation', 'zoo'))))"
     )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert loaded == [], f"importing {package} loads {loaded}"
 
 
-OBSERVERS = ("evaluation", "reproduce", "zoo")
+OBSERVERS = ("evaluation", "zoo", "pearl_paper.reproduce", "pearl_paper.demo")
 
 
 @pytest.mark.parametrize("module", sorted(m for m in MODULES if room(m) in ("pearl", "finetune", "maml")))
 def test_algorithm_modules_import_no_observer(module: str) -> None:
-    """Seam 4 on the static graph (function-level imports included): an algorithm module imports no module of the
+    """The same on the static graph (function-level imports included): an algorithm module imports no module of the
     evaluation layer, the harness, the zoo or the diagnostics; the diagnostics themselves (``pearl.diagnostics``) are
     the observer that lives beside PEARL and may use the evaluation layer."""
     if ".diagnostics" in module:
@@ -211,7 +247,7 @@ def test_algorithm_modules_import_no_observer(module: str) -> None:
 def test_the_observer_rule_sees_a_function_level_import() -> None:
     """The graph the rule reads holds imports made inside functions (the report's figures and sections are imported in
     ``build_report``), which the import-time test above cannot see."""
-    assert "sb3_pearl.reproduce.remeasured_tables" in GRAPH["sb3_pearl.reproduce.report"]
+    assert "pearl_paper.reproduce.remeasured_tables" in GRAPH["pearl_paper.reproduce.report"]
     assert "sb3_pearl.evaluation.meta_test" in GRAPH["sb3_pearl.pearl.diagnostics.rollouts"]
 
 
@@ -242,9 +278,9 @@ def test_the_speed_figure_pattern_on_hand_made_lines() -> None:
 
 
 def test_docstrings_carry_no_speed_figures() -> None:
-    """Measured speed ratios belong in docs/ (speed.md, pearl.md, ...) with their command, not in code (issue 39)."""
+    """Measured speed ratios belong in docs/ (speed.md, pearl.md, ...) with their command, not in code."""
     found = [
-        f"{path.relative_to(PACKAGE.parent)}:{line}: {match.group(0)}"
+        f"{path.relative_to(ROOT)}:{line}: {match.group(0)}"
         for path in MODULES.values()
         for line, text in docstrings_and_comments(path)
         for match in SPEED_FIGURE.finditer(text)

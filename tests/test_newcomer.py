@@ -18,11 +18,11 @@ import gymnasium as gym
 import pytest
 
 from sb3_pearl import PEARLPlus
+from sb3_pearl.budgets import load_budget
 from sb3_pearl.evaluation.callbacks import MetaTestCallback
 from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.evaluation.progress import TrainingProgressCallback, format_duration
 from sb3_pearl.evaluation.statistics import summarize
-from sb3_pearl.experiments.budgets import load_budget
 from sb3_pearl.finetune import FineTune
 from sb3_pearl.zoo import enjoy, train
 from sb3_pearl.zoo.budget import budget_hyperparams, faster_option
@@ -34,8 +34,10 @@ TINY_PARAMS = TINY_ZOO_PARAMS  # the packaged zoo_hyperparams/ file is read, its
 QUIET_ENV = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY", "MUJOCO_GL")}
 
 
-def run(command: list[str], cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+def run(command: list[str], cwd: Path, timeout: float = 120, installed: bool = False) -> subprocess.CompletedProcess[str]:
     env = {**QUIET_ENV, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    if installed:  # the installed copy is what is tested: a PYTHONPATH naming a checkout would put its sb3_pearl first
+        env.pop("PYTHONPATH", None)
     return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
 
 
@@ -51,11 +53,12 @@ def test_non_editable_install_runs_from_anywhere(tmp_path: Path) -> None:
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)], check=True)
     python = venv / "bin" / "python"
-    purelib = Path(run([str(python), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], tmp_path).stdout.strip())
+    purelib_cmd = [str(python), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"]
+    purelib = Path(run(purelib_cmd, tmp_path, installed=True).stdout.strip())
     # The project venv's packages (torch, SB3, ...) as plain paths: its editable sb3_pearl finder is not loaded.
     (purelib / "project_venv.pth").write_text(site.getsitepackages()[0] + "\n")
     install = [str(python), "-m", "pip", "install", "-v", "--no-deps", "--no-build-isolation", "--ignore-installed", "."]
-    proc = run(install, source)  # -v: the build backend's warnings too
+    proc = run(install, source, installed=True)  # -v: the build backend's warnings too
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "project.license" not in proc.stdout + proc.stderr  # "... as a TOML table is deprecated"
     assert (purelib / "sb3_pearl" / "config" / "zoo_hyperparams" / "pearlplus.yml").is_file()
@@ -64,7 +67,7 @@ def test_non_editable_install_runs_from_anywhere(tmp_path: Path) -> None:
     elsewhere.mkdir()
 
     train_args = ["--algo", "pearlplus", "--env", ENV_ID, "--seed", "1", "-n", "300", "--eval-freq", "-1", "-P"]
-    proc = run([str(venv / "bin" / "sb3-pearl-train"), *train_args, "-params", *TINY_PARAMS], elsewhere)
+    proc = run([str(venv / "bin" / "sb3-pearl-train"), *train_args, "-params", *TINY_PARAMS], elsewhere, installed=True)
     output = proc.stdout
     assert proc.returncode == 0, output[-3000:] + proc.stderr[-3000:]
     assert f"Loading hyperparameters from: {purelib / 'sb3_pearl' / 'config' / 'zoo_hyperparams' / 'pearlplus.yml'}" in output

@@ -11,12 +11,12 @@ import torch
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_pearl  # noqa: F401  (registers the families)
+from pearl_paper.reproduce.velocity import constant_references, family_verdicts, geometric_median
 from sb3_pearl import FineTune, Oracle
 from sb3_pearl.envs import FAMILIES
 from sb3_pearl.envs.task_observation import TaskObservation, task_features
 from sb3_pearl.evaluation.meta_test import meta_test
 from sb3_pearl.oracle.oracle import with_task_observation
-from sb3_pearl.reproduce.velocity import constant_references, family_verdicts, geometric_median
 
 FLAT_FAMILIES = list(FAMILIES)
 TINY = {"learning_starts": 50, "batch_size": 16, "policy_kwargs": {"net_arch": [16]}, "n_train_tasks": 4, "n_test_tasks": 2}
@@ -157,7 +157,15 @@ def test_geometric_median_and_constant_references_by_hand() -> None:
 
 def _record(seed: int, errors: dict[int, float], targets: list[list[float]]) -> dict:
     rows = [
-        {"task": task, "repeat": 0, "k": k, "error": errors[k] + 0.1 * task, "length": 200, "violated": False}
+        {
+            "task": task,
+            "repeat": 0,
+            "k": k,
+            "error": errors[k] + 0.1 * task,
+            "length": 200,
+            "violated": False,
+            "return": 10.0 * k,
+        }
         for task in range(len(targets))
         for k in errors
     ]
@@ -190,12 +198,41 @@ def test_competence_rules_against_the_oracle() -> None:
         family_verdicts("walker2d-vel-long", records)
 
 
+def test_competence_section_reports_the_oracle_and_the_judged_runs(tmp_path) -> None:
+    """The report's section: the records under results/ (the oracle's and the runs JUDGED_RUNS names), the references,
+    the per-bin errors and the verdicts, provisional while the oracle has fewer seeds than declared."""
+    import json
+
+    from pearl_paper.reproduce.velocity import VELOCITY_FILE, competence_section
+
+    assert competence_section(tmp_path) == []  # no oracle record: no section
+    targets = [[0.0], [1.0], [3.0]]
+    shift = 0.1
+
+    def write(experiment: str, variant: str, seed: int, errors: dict[int, float]) -> None:
+        folder = tmp_path / experiment / "walker2d-vel-long" / variant / f"seed{seed}"
+        folder.mkdir(parents=True)
+        (folder / VELOCITY_FILE).write_text(json.dumps(_record(seed, errors, targets)))
+
+    write("oracle", "oracle", 0, {0: 0.3 - shift, 1: 0.3 - shift})
+    write("pearl-reference", "pearl", 0, {0: 1.0, 1: 0.35 - shift})
+    write("pearl-reference", "pearl", 1, {0: 1.0, 1: 0.45 - shift})  # mean 0.40 <= 1.5 x 0.30 and <= 0.75 x 1.0
+    write("walker-table1", "pearlplus", 0, {0: 1.0, 1: 0.8 - shift})
+    lines = competence_section(tmp_path)
+    text = "\n".join(lines)
+    assert "standing still 1.333 m/s, the best constant velocity 1.000" in text
+    assert "**learnable (provisional: 1 of 3 oracle seeds)**" in text
+    assert "| Oracle (1) | 0.300 [0.300, 0.300] | 0.200 | 0.350 | 0.300 | 0.0% | 10.0 | learnable (provisional" in text
+    assert "| PEARL (2) | 0.400 [0.350, 0.450] | 0.300 | 0.450 | 1.100 | 0.0% | 10.0 | competent |" in text
+    assert "| PEARL+ (1) | 0.800 [0.800, 0.800] | 0.700 | 0.850 | 1.100 | 0.0% | 10.0 | not competent |" in text
+
+
 def test_reproduce_velocity_measures_finished_runs_on_their_own_held_out_tasks(tmp_path) -> None:
     """`reproduce run oracle` (smoke) then `reproduce velocity oracle`: one record per finished run, on the run's own
     meta-test tasks (its n_tasks), every trajectory's velocity error; a second call measures nothing again."""
     import json
 
-    from sb3_pearl.reproduce.cli import main as reproduce_main
+    from pearl_paper.reproduce.cli import main as reproduce_main
 
     args = ["--family", "walker2d-vel-long", "--seeds", "0", "--results-dir", str(tmp_path)]
     assert reproduce_main(["run", "oracle", "--budget", "smoke", *args]) == 0

@@ -13,17 +13,17 @@ import pytest
 import torch as th
 from torch import nn
 
+from pearl_paper.experiments import EXPERIMENTS
+from pearl_paper.experiments.families import SAFE_POINT
+from pearl_paper.experiments.prior_critic import DESIGNS, PRIOR_CRITIC, PRIOR_CRITIC_WALKER, design_variant
+from pearl_paper.experiments.spec import Experiment, check_shared
+from pearl_paper.reproduce.prior_measures import compute_prior_measures, scripted_prior
+from pearl_paper.reproduce.scheduler import plan_runs
 from sb3_pearl import PEARLPlus
 from sb3_pearl.envs.safe_point_goal import SCRIPTED_PRIORS
 from sb3_pearl.evaluation.meta_test import meta_test
 from sb3_pearl.evaluation.scripted import ScriptedPolicy
-from sb3_pearl.experiments import EXPERIMENTS
-from sb3_pearl.experiments.families import SAFE_POINT
-from sb3_pearl.experiments.prior_critic import DESIGNS, PRIOR_CRITIC, PRIOR_CRITIC_WALKER, design_variant
-from sb3_pearl.experiments.spec import Experiment, check_shared
 from sb3_pearl.pearl.diagnostics.calibration import error_measures, rank_correlation
-from sb3_pearl.reproduce.prior_measures import compute_prior_measures, scripted_prior
-from sb3_pearl.reproduce.scheduler import plan_runs
 from tests.conftest import make_discrete_env
 from tests.test_pearl_losses import _is_zero, _reaches
 
@@ -279,8 +279,8 @@ def _run(rel: float, rank: float, gap_return: float, gap_violation: float) -> di
 def test_prior_critic_table_pairs_each_seed_with_its_bar_run() -> None:
     """A variant bar (Walker2D-vel: Fine-Tune) pairs seed with seed for the gaps; the calibration uses every measured run,
     so an experiment without Fine-Tune runs still shows its critics' calibration (its gaps n/a)."""
-    from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.reproduce.prior_report import prior_critic_table
+    from pearl_paper.experiments import get_experiment
+    from pearl_paper.reproduce.prior_report import prior_critic_table
 
     def measured(return_: float, violation: float, rel: float = 0.5) -> dict[str, Any]:
         model = {"return": return_, "violation": violation}
@@ -313,7 +313,7 @@ def test_prior_critic_table_pairs_each_seed_with_its_bar_run() -> None:
 def test_the_selection_rule_as_written() -> None:
     """docs/pearl.md: calibrated designs first (rel. error < 0.25, rank corr. > 0.5), ranked by the train return gap,
     ties within 0.5 by the lower violation gap; fewer than two calibrated: the best of the others fill the places."""
-    from sb3_pearl.reproduce.prior_report import rank_designs, select, selection_table
+    from pearl_paper.reproduce.prior_report import rank_designs, select, selection_table
 
     def group(**designs: tuple[float, float, float, float]) -> dict[str, Any]:
         return {f"alpha-0.1-{name}": {0: _run(*values)} for name, values in designs.items()}
@@ -338,10 +338,10 @@ def test_the_selection_rule_as_written() -> None:
 def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.CaptureFixture[str]) -> None:
     """Alpha 1 runs only for the two designs the rule selects, and only once every run it reads is complete: until then
     `reproduce run` leaves the alpha-1 designs out and `reproduce status` counts them apart; naming one still runs it."""
-    from sb3_pearl.reproduce.cli import main
-    from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, run_dir, write_json_atomic
-    from sb3_pearl.reproduce.prior_report import selection_gate
-    from sb3_pearl.reproduce.status import format_status, run_status
+    from pearl_paper.reproduce.cli import main
+    from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, run_dir, write_json_atomic
+    from pearl_paper.reproduce.prior_report import selection_gate
+    from pearl_paper.reproduce.status import format_status, run_status
 
     measures = {"zfree": (0.2, 0.6, -3.0, 0.20), "cql5": (0.1, 0.7, -3.3, 0.05)}  # the two calibrated designs
     last = (PRIOR_CRITIC.families[-1].name, "mc", PRIOR_CRITIC.seeds[-1])
@@ -370,7 +370,7 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
     assert [row.key for row in rows if row.status == "finished"][-1].variant == "alpha-0.1-mc"
     assert f"{len(awaiting)} run(s) await the selection rule" in format_status(rows)
     # a held run started by naming it keeps its checkpoint; it is still held (out of the total), resumed by naming it
-    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
+    from pearl_paper.reproduce.checkpoint import RunCheckpoint
 
     started = RunKey("prior-critic", PRIOR_CRITIC.families[0].name, "alpha-1-twin", 0)
     (run_dir(tmp_path, started) / "checkpoint").mkdir(parents=True)
@@ -404,7 +404,7 @@ def test_alpha_1_runs_wait_for_the_selection_rule(tmp_path: Any, capsys: pytest.
 
 
 def test_the_selection_figure_shows_the_measures_the_rule_reads(tmp_path: Any) -> None:
-    from sb3_pearl.reproduce.figures import plot_prior_selection
+    from pearl_paper.reproduce.figures import plot_prior_selection
 
     groups = {
         family.name: {"alpha-0.1-zfree": {0: _run(0.2, 0.6, -3.0, 0.2)}, "alpha-1-zfree": {0: _run(0.1, 0.9, -1.0, 0.1)}}
@@ -422,8 +422,8 @@ def test_the_selection_figure_shows_the_measures_the_rule_reads(tmp_path: Any) -
 
 def test_the_gate_says_which_finished_runs_lack_the_measures(tmp_path: Any) -> None:
     """A finished run whose measures failed keeps the rule from selecting: the gate names it (`reproduce measure`)."""
-    from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, run_dir, write_json_atomic
-    from sb3_pearl.reproduce.prior_report import design_of, selection_gate
+    from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, run_dir, write_json_atomic
+    from pearl_paper.reproduce.prior_report import design_of, selection_gate
 
     key = RunKey("prior-critic", "safe-point", "alpha-0.1-zfree", 3)
     run_dir(tmp_path, key).mkdir(parents=True)
@@ -442,7 +442,7 @@ def test_step_5_of_the_selection_rule_by_hand() -> None:
     """Step 5 (docs/pearl.md): on every family with all its seeds, calibrated, k = 0 violations below PEARL's with a
     paired interval excluding zero, and the adapted policy not worse (violations within 5 points, return not lower by
     the family's margin); intervals by hand."""
-    from sb3_pearl.reproduce.prior_report import outcome_rows, outcome_section, outcome_table, paper_form_of
+    from pearl_paper.reproduce.prior_report import outcome_rows, outcome_section, outcome_table, paper_form_of
 
     def run(k0_violation: float, k5_violation: float, k5_return: float, rel: float = 0.1) -> dict[str, Any]:
         summary = [

@@ -25,7 +25,7 @@ from unittest import mock
 
 import pytest
 
-from sb3_pearl import demo
+from pearl_paper import demo
 from tests.conftest import TINY_ZOO_PARAMS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -119,9 +119,9 @@ TOOLS = {
     "python -m sb3_pearl.enjoy": "enjoy",
     "sb3-pearl-enjoy": "enjoy",
     "python -m sb3_pearl.plots": "plots",
-    "python -m sb3_pearl.reproduce": "reproduce",
+    "python -m pearl_paper.reproduce": "reproduce",
     "python -m sb3_pearl.diagnose": "diagnose",
-    "python -m sb3_pearl.demo": "demo",
+    "python -m pearl_paper.demo": "demo",
     "make": "make",
 }
 
@@ -211,7 +211,7 @@ def parse(command: Command) -> None:
         register_algos()  # --algo's choices: rl_zoo3's ALGOS with the project's (train.py's parse registers them too)
         enjoy_parser().parse_args(command.argv)
     elif command.tool == "reproduce":
-        from sb3_pearl.reproduce.cli import build_parser
+        from pearl_paper.reproduce.cli import build_parser
 
         build_parser().parse_args(command.argv)
     elif command.tool == "diagnose":
@@ -311,9 +311,9 @@ def test_the_thread_default_is_said_where_a_user_looks() -> None:
 # make demo
 # ----------------------------------------------------------------------------------------------
 def test_make_demo_defaults_are_runnable() -> None:
-    """``make demo`` is ``python -m sb3_pearl.demo`` with no argument, and its defaults fit: the seeds it replays are
+    """``make demo`` is ``python -m pearl_paper.demo`` with no argument, and its defaults fit: the seeds it replays are
     committed (model and result), its tasks and draws are within their committed meta-test, its train.py line parses."""
-    assert re.search(r"^demo: setup\n\t\$\(BIN\)/python -m sb3_pearl\.demo\n", (ROOT / "Makefile").read_text(), flags=re.M)
+    assert re.search(r"^demo: setup\n\t\$\(BIN\)/python -m pearl_paper\.demo\n", (ROOT / "Makefile").read_text(), flags=re.M)
     args = demo.demo_parser().parse_args([])
     runs = demo.headline_runs(demo.default_results_dir())
     assert set(runs) == set(demo.HEADLINE) and args.replay_seeds
@@ -344,7 +344,7 @@ def test_demo_at_a_small_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, c
     assert "Table I decided" in out and any(line.startswith("- **Safer prior**") for line in summary["decided"])
     assert all(line in out for line in summary["decided"])
     # the headline table is the README's: the re-measured meta-test, whose paired differences are the rules' intervals
-    from sb3_pearl.reproduce.table1_verdicts import decide_family
+    from pearl_paper.reproduce.table1_verdicts import decide_family
 
     assert "re-measured on Table I's design" in out
     decision = decide_family("highway-merge", demo.default_results_dir())
@@ -360,7 +360,7 @@ def test_demo_at_a_small_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, c
 
 @pytest.mark.slow
 def test_make_demo_as_is(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``python -m sb3_pearl.demo`` exactly as ``make demo`` runs it: within the issue's 5 minutes on 2 cores."""
+    """``python -m pearl_paper.demo`` exactly as ``make demo`` runs it: within the issue's 5 minutes on 2 cores."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("MPLBACKEND", "Agg")
     start = time.time()
@@ -373,7 +373,7 @@ def test_make_demo_as_is(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
 def test_the_headline_holds_the_decided_numbers(family: str, row_start: str) -> None:
     """The README's headline (and the PEARL page's copy) holds Table I's verdict on each decided family as the rules
     compute it from the committed results: the paired k = 0 and k = 5 intervals and the verdict words."""
-    from sb3_pearl.reproduce.table1_verdicts import decide_family
+    from pearl_paper.reproduce.table1_verdicts import decide_family
 
     decision = decide_family(family, demo.default_results_dir())
     assert decision.prior_interval is not None and decision.adapted_interval is not None

@@ -777,8 +777,8 @@ def test_load_replay_buffer_of_a_model_zip_says_what_to_load(tmp_path: Path, tin
 
 
 def test_reproduce_seeds_beyond_numpys_bound_are_refused(tmp_path: Path) -> None:
-    from sb3_pearl.reproduce.cli import main
-    from sb3_pearl.reproduce.layout import parse_seeds
+    from pearl_paper.reproduce.cli import main
+    from pearl_paper.reproduce.layout import parse_seeds
 
     assert parse_seeds("4294967295") == [4294967295]
     for text in ("4294967296", "0,4294967290-4294967296"):

@@ -20,14 +20,14 @@ import torch as th
 import yaml
 
 import tests.faulty_envs as faulty_envs
+from pearl_paper.reproduce.cells import load_groups
+from pearl_paper.reproduce.cli import main
+from pearl_paper.reproduce.layout import write_json_atomic
+from pearl_paper.reproduce.ownership import RunLockedError, lock_holder, run_lock
 from sb3_pearl import PEARLPlus
 from sb3_pearl.diagnose import main as diagnose_main
 from sb3_pearl.envs import FAMILIES
 from sb3_pearl.evaluation.figures import main as plots_main
-from sb3_pearl.reproduce.cells import load_groups
-from sb3_pearl.reproduce.cli import main
-from sb3_pearl.reproduce.layout import write_json_atomic
-from sb3_pearl.reproduce.ownership import RunLockedError, lock_holder, run_lock
 from sb3_pearl.zoo import enjoy, train
 from sb3_pearl.zoo.safe_config import load_run_yaml
 from tests.conftest import TINY_ZOO_PARAMS, Completed, run_in_process

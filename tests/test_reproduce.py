@@ -11,25 +11,15 @@ from typing import Any
 import gymnasium as gym
 import pytest
 
-from sb3_pearl import PEARLPlus
-from sb3_pearl.evaluation.meta_test import MetaTestResult
-from sb3_pearl.experiments import EXPERIMENTS, get_experiment
-from sb3_pearl.experiments.budgets import (
-    PRESETS,
-    check_preset,
-    check_statistics_floor,
-    load_budget,
-    model_kwargs,
-    validate_entry,
-)
-from sb3_pearl.experiments.families import get_family
-from sb3_pearl.experiments.spec import Claim, Criterion, Experiment, PaperCell, Variant, claims_from_paper, resolve_k
-from sb3_pearl.reproduce.cli import main
-from sb3_pearl.reproduce.competence import criterion_value, evaluate_competence
-from sb3_pearl.reproduce.layout import RESULT_KEYS, parse_seeds
-from sb3_pearl.reproduce.report import BEGIN, END, GENERATED, splice
-from sb3_pearl.reproduce.runner import held_out_record
-from sb3_pearl.reproduce.stats import (
+from pearl_paper.experiments import EXPERIMENTS, get_experiment
+from pearl_paper.experiments.families import get_family
+from pearl_paper.experiments.spec import Claim, Criterion, Experiment, PaperCell, Variant, claims_from_paper, resolve_k
+from pearl_paper.reproduce.cli import main
+from pearl_paper.reproduce.competence import criterion_value, evaluate_competence
+from pearl_paper.reproduce.layout import RESULT_KEYS, parse_seeds
+from pearl_paper.reproduce.report import BEGIN, END, GENERATED, splice
+from pearl_paper.reproduce.runner import held_out_record
+from pearl_paper.reproduce.stats import (
     INCONCLUSIVE,
     NOT_REPRODUCED,
     REPRODUCED,
@@ -39,14 +29,24 @@ from sb3_pearl.reproduce.stats import (
     t_quantile,
     verdict,
 )
-from tests.conftest import Completed, run_in_process
+from sb3_pearl import PEARLPlus
+from sb3_pearl.budgets import (
+    PRESETS,
+    check_preset,
+    check_statistics_floor,
+    load_budget,
+    model_kwargs,
+    validate_entry,
+)
+from sb3_pearl.evaluation.meta_test import MetaTestResult
+from tests.conftest import Completed, run_in_process, write_model_zip
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_ARGS = ["safe-point", "--budget", "smoke", "--seeds", "0", "--family", "safe-point", "--variants", "alpha-0", "alpha-0.1"]
 
 
 def reproduce(*args: str) -> Completed:
-    """``python -m sb3_pearl.reproduce ...``'s entry point in this process (its runs are still child processes)."""
+    """``python -m pearl_paper.reproduce ...``'s entry point in this process (its runs are still child processes)."""
     return run_in_process(main, *args)
 
 
@@ -148,7 +148,7 @@ def test_measure_brings_older_measures_up_to_date(results: Path, tmp_path: Path)
     import json
     import shutil
 
-    from sb3_pearl.reproduce.prior_measures import MEASURES_VERSION
+    from pearl_paper.reproduce.prior_measures import MEASURES_VERSION
 
     folder = tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
     shutil.copytree(run_folder(results, "alpha-0.1"), folder)
@@ -206,8 +206,8 @@ def _fake_result(rates: list[float], returns: list[float]) -> dict[str, Any]:
 
 
 def test_seed_table_and_figure_show_each_seed(tmp_path: Path) -> None:
-    from sb3_pearl.reproduce.figures import plot_seeds
-    from sb3_pearl.reproduce.report import seed_table
+    from pearl_paper.reproduce.figures import plot_seeds
+    from pearl_paper.reproduce.report import seed_table
 
     experiment = get_experiment("safe-point")
     group = {
@@ -238,7 +238,7 @@ def test_seed_table_and_figure_show_each_seed(tmp_path: Path) -> None:
 
 
 def test_run_rejects_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from sb3_pearl.reproduce.cli import main
+    from pearl_paper.reproduce.cli import main
 
     for args, message in (
         (["run", "safe-point", "--budget", "smoke", "--family", "nope"], "has no family 'nope'"),
@@ -252,8 +252,8 @@ def test_run_rejects_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture
 
 
 def test_run_refuses_a_result_of_another_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from sb3_pearl.reproduce.cli import main
-    from sb3_pearl.reproduce.layout import write_json_atomic
+    from pearl_paper.reproduce.cli import main
+    from pearl_paper.reproduce.layout import write_json_atomic
 
     folder = run_folder(tmp_path, "alpha-0")
     folder.mkdir(parents=True)
@@ -272,7 +272,7 @@ def test_run_refuses_a_result_of_another_budget(tmp_path: Path, capsys: pytest.C
 
 
 def test_run_dry_run_lists_the_plan(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from sb3_pearl.reproduce.cli import main
+    from pearl_paper.reproduce.cli import main
 
     args = ["run", "table2", "--budget", "cpu", "--seeds", "0-1", "--family", "highway-merge", "--dry-run"]
     assert main([*args, "--results-dir", str(tmp_path)]) == 0
@@ -284,7 +284,7 @@ def test_run_dry_run_lists_the_plan(tmp_path: Path, capsys: pytest.CaptureFixtur
 
 def test_run_notes_seeds_a_variant_does_not_declare(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """--seeds applies to every chosen variant; a seed the report would leave out is named before anything runs."""
-    from sb3_pearl.reproduce.cli import main
+    from pearl_paper.reproduce.cli import main
 
     args = ["run", "merge-table3", "--variants", "alpha-0-fixed-entropy", "alpha-1-fixed-entropy", "--seeds", "3-5"]
     assert main([*args, "--dry-run", "--results-dir", str(tmp_path)]) == 0
@@ -296,9 +296,9 @@ def test_run_notes_seeds_a_variant_does_not_declare(tmp_path: Path, capsys: pyte
 def test_run_dry_run_says_what_is_done_resumed_and_started(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A finished run is listed as skipped, one with a checkpoint as resumed, the others as started (issue 37: the dry
     run listed finished runs as if they would run); --force starts all from zero; nothing on disk changes."""
-    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-    from sb3_pearl.reproduce.cli import main
-    from sb3_pearl.reproduce.layout import write_json_atomic
+    from pearl_paper.reproduce.checkpoint import RunCheckpoint
+    from pearl_paper.reproduce.cli import main
+    from pearl_paper.reproduce.layout import write_json_atomic
 
     done, partway = run_folder(tmp_path, "alpha-0.1"), tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed1"
     done.mkdir(parents=True)
@@ -307,7 +307,7 @@ def test_run_dry_run_says_what_is_done_resumed_and_started(tmp_path: Path, capsy
     times = {"cpu": {"cpu_time_s": 3600.0}, "wall_time_s": {"total": 3600.0, "train": 3000.0}}
     write_json_atomic(done / "result.json", {**keys, "meta_test": {"summary": summary}, **times})
     (partway / "checkpoint").mkdir(parents=True)
-    (partway / "checkpoint" / "model_240.zip").write_bytes(b"")
+    write_model_zip(partway / "checkpoint" / "model_240.zip")
     state = {"phase": "train", "files": {"model": "model_240.zip"}, "num_timesteps": 240, "phases": {},
              "spent": {"cpu_s": 24.0, "wall_s": 30.0}}  # fmt: skip
     RunCheckpoint(partway).write_state(state)
@@ -594,8 +594,8 @@ def test_competence_criteria() -> None:
 
 def test_curve_table_and_figure_say_where_a_run_became_competent(tmp_path: Path) -> None:
     """The report's curve row: last point, first competent env step (all criteria passed), each criterion's last and best."""
-    from sb3_pearl.reproduce.curve import curve_table
-    from sb3_pearl.reproduce.figures import plot_curves
+    from pearl_paper.reproduce.curve import curve_table
+    from pearl_paper.reproduce.figures import plot_curves
 
     experiment = get_experiment("pearl-reference")
 
@@ -625,7 +625,7 @@ def test_curve_table_and_figure_say_where_a_run_became_competent(tmp_path: Path)
 
 def test_curve_figure_panels_and_env_step_ticks() -> None:
     """The cheetah never falls: no violation panel; every figure shows the prior policy's return; ticks read 200k, 1.5M."""
-    from sb3_pearl.reproduce.figures import curve_panels, env_steps_label
+    from pearl_paper.reproduce.figures import curve_panels, env_steps_label
 
     experiment = get_experiment("pearl-reference")
     walker, cheetah = experiment.family("walker2d-vel-ref"), experiment.family("cheetah-vel")
@@ -644,10 +644,10 @@ def test_curve_figure_panels_and_env_step_ticks() -> None:
 
 def test_the_report_draws_runs_in_progress_and_leaves_out_folders_that_are_not(tmp_path: Path) -> None:
     """Part-way runs (checkpoint + curve.csv, no result.json) get a section; stray or unreadable folders do not crash it."""
-    from sb3_pearl.reproduce.cells import load_partway_curves
-    from sb3_pearl.reproduce.checkpoint import RunCheckpoint
-    from sb3_pearl.reproduce.curve import write_curve
-    from sb3_pearl.reproduce.report import build_report
+    from pearl_paper.reproduce.cells import load_partway_curves
+    from pearl_paper.reproduce.checkpoint import RunCheckpoint
+    from pearl_paper.reproduce.curve import write_curve
+    from pearl_paper.reproduce.report import build_report
 
     def partway(relative: str, steps: int, state: str | None = None) -> None:
         folder = tmp_path / relative
@@ -685,10 +685,10 @@ def test_the_report_draws_runs_in_progress_and_leaves_out_folders_that_are_not(t
 
 def test_the_merge_tables_at_the_reference_entropy_share_the_runs_of_one_model() -> None:
     """merge-table1..3: the tables' merge variants plus fixed entropy 1 / reward scale 5; one run folder per model."""
-    from sb3_pearl.experiments.merge_fixed_entropy import at_reference_entropy, merge_at_reference_entropy
-    from sb3_pearl.experiments.table1 import TABLE1
-    from sb3_pearl.experiments.table3 import TABLE3
-    from sb3_pearl.reproduce.scheduler import plan_runs
+    from pearl_paper.experiments.merge_fixed_entropy import at_reference_entropy, merge_at_reference_entropy
+    from pearl_paper.experiments.table1 import TABLE1
+    from pearl_paper.experiments.table3 import TABLE3
+    from pearl_paper.reproduce.scheduler import plan_runs
 
     table1, table3 = get_experiment("merge-table1"), get_experiment("merge-table3")
     for experiment in (table1, get_experiment("merge-table2"), table3):
@@ -719,8 +719,8 @@ def test_a_group_holds_the_seeds_its_experiment_declares(tmp_path: Path) -> None
     """A shared variant's owner may hold more seeds (run for another experiment): each report shows its own seeds."""
     import json
 
-    from sb3_pearl.reproduce.cells import load_groups
-    from sb3_pearl.reproduce.layout import RunKey, run_dir
+    from pearl_paper.reproduce.cells import load_groups
+    from pearl_paper.reproduce.layout import RunKey, run_dir
 
     def write(experiment: str, variant: str, seed: int) -> None:
         folder = run_dir(tmp_path, RunKey(experiment, "highway-merge", variant, seed))
@@ -747,7 +747,7 @@ def test_a_group_holds_the_seeds_its_experiment_declares(tmp_path: Path) -> None
 def test_a_variant_may_declare_its_own_seeds() -> None:
     """Issue 36 took Table III's alpha 0 and 0.1 rows and Table II's 300-node row (beside PEARL) to Table I's 10
     seeds: a run without --seeds plans each variant's declared seeds, --seeds still names them for every variant."""
-    from sb3_pearl.reproduce.scheduler import plan_runs, undeclared_seeds
+    from pearl_paper.reproduce.scheduler import plan_runs, undeclared_seeds
 
     table2, table3 = get_experiment("merge-table2"), get_experiment("merge-table3")
     assert table3.seeds_of("alpha-0-fixed-entropy") == tuple(range(10)) == table3.seeds_of("pearlplus-fixed-entropy")
@@ -777,9 +777,9 @@ def test_remeasure_repeats_the_runs_own_meta_test_and_adds_draws(results: Path, 
     import json
     import shutil
 
+    from pearl_paper.experiments.table1_rules import RemeasureConfig
+    from pearl_paper.reproduce.remeasure import remeasure_experiments
     from sb3_pearl.evaluation.statistics import summarize
-    from sb3_pearl.experiments.table1_rules import RemeasureConfig
-    from sb3_pearl.reproduce.remeasure import remeasure_experiments
 
     folder = tmp_path / "safe-point" / "safe-point" / "alpha-0.1" / "seed0"
     shutil.copytree(run_folder(results, "alpha-0.1"), folder)
@@ -831,7 +831,7 @@ def _copy_run(source: Path, results_dir: Path, names: tuple[str, ...] = ("result
 def test_report_writes_its_file_atomically(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A write of docs/results.md that fails half-way (here an unencodable character) leaves the previous file whole,
     and no temporary file beside it."""
-    from sb3_pearl.reproduce import report
+    from pearl_paper.reproduce import report
 
     _copy_run(COMMITTED_RUN, tmp_path / "results")
     out = tmp_path / "docs" / "results.md"
@@ -853,7 +853,7 @@ def test_a_remeasured_record_of_another_run_is_skipped_with_a_warning(tmp_path: 
     import json
     import shutil
 
-    from sb3_pearl.reproduce.remeasure import read_remeasured
+    from pearl_paper.reproduce.remeasure import read_remeasured
 
     seed0 = _copy_run(REMEASURED_RUN / "seed0", tmp_path, ("result.json", "meta_test_large.json"))
     seed1 = _copy_run(REMEASURED_RUN / "seed1", tmp_path, ("result.json",))
@@ -879,8 +879,8 @@ def test_remeasure_measures_an_empty_or_unparsable_record_again(tmp_path: Path) 
     says so."""
     import json
 
-    from sb3_pearl.experiments.table1_rules import RemeasureConfig
-    from sb3_pearl.reproduce.remeasure import remeasure_run
+    from pearl_paper.experiments.table1_rules import RemeasureConfig
+    from pearl_paper.reproduce.remeasure import remeasure_run
 
     folder = _copy_run(COMMITTED_RUN, tmp_path, ("result.json", "model.zip"))
     tiny = RemeasureConfig(n_tasks=1, prior_repeats=1, adapted_repeats=1, n_adapt=1, file_name="tiny.json")

@@ -14,11 +14,11 @@ from pathlib import Path
 
 import pytest
 
-from sb3_pearl.experiments import get_experiment
-from sb3_pearl.reproduce.cli import main
-from sb3_pearl.reproduce.layout import LOG_FILE, RunKey, parse_seeds, read_result, run_dir, write_json_atomic
-from sb3_pearl.reproduce.ownership import LOCKED_EXIT, RunLockedError, lock_holder, run_lock
-from sb3_pearl.reproduce.scheduler import plan_runs, run_experiment
+from pearl_paper.experiments import get_experiment
+from pearl_paper.reproduce.cli import main
+from pearl_paper.reproduce.layout import LOG_FILE, RunKey, parse_seeds, read_result, run_dir, write_json_atomic
+from pearl_paper.reproduce.ownership import LOCKED_EXIT, RunLockedError, lock_holder, run_lock
+from pearl_paper.reproduce.scheduler import plan_runs, run_experiment
 from sb3_pearl.zoo import train
 from sb3_pearl.zoo.usage import UsageError, check_yaml_n_timesteps
 from tests.conftest import run_in_process
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
 KEY = RunKey("safe-point", "safe-point", "alpha-0", 0)
 HOLD = (
-    "import sys, time\nfrom sb3_pearl.reproduce.ownership import run_lock\n"
+    "import sys, time\nfrom pearl_paper.reproduce.ownership import run_lock\n"
     "with run_lock(sys.argv[1]):\n    print('held', flush=True)\n    time.sleep(60)"
 )
 
@@ -96,7 +96,7 @@ def _children(pid: int) -> list[int]:
 def test_sigterm_to_the_parent_stops_its_runs_and_says_how_to_finish_them(tmp_path: Path) -> None:
     args = ["run", "safe-point", "--budget", "smoke", "--seeds", "0-1", "--family", "safe-point", "--variants", "alpha-0"]
     parent = subprocess.Popen(
-        [sys.executable, "-m", "sb3_pearl.reproduce", *args, "--jobs", "2", "--results-dir", str(tmp_path)],
+        [sys.executable, "-m", "pearl_paper.reproduce", *args, "--jobs", "2", "--results-dir", str(tmp_path)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

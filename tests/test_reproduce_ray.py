@@ -21,11 +21,11 @@ import pytest
 
 ray = pytest.importorskip("ray", reason='Ray is not installed: pip install -e ".[ray]" (part of the dev extra)')
 
-from sb3_pearl.experiments import get_experiment  # noqa: E402
-from sb3_pearl.reproduce.cli import main  # noqa: E402
-from sb3_pearl.reproduce.layout import RESULT_FILE, RunKey, run_dir  # noqa: E402
-from sb3_pearl.reproduce.ray_backend import init_ray, run_experiment_ray  # noqa: E402
-from sb3_pearl.reproduce.scheduler import RAY_MISSING, run_experiment  # noqa: E402
+from pearl_paper.experiments import get_experiment  # noqa: E402
+from pearl_paper.reproduce.cli import main  # noqa: E402
+from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, run_dir  # noqa: E402
+from pearl_paper.reproduce.ray_backend import init_ray, run_experiment_ray  # noqa: E402
+from pearl_paper.reproduce.scheduler import RAY_MISSING, run_experiment  # noqa: E402
 
 EXPERIMENT = get_experiment("safe-point")
 VARIANTS = ["alpha-0", "alpha-0.1"]
@@ -146,8 +146,8 @@ def test_ray_options_are_checked_before_anything_starts(
     assert main([*args, "--backend", "ray", "--address", "ray://head:10001"]) == 2
     assert "give --storage-path" in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "ray", None)  # Ray not installed
-    monkeypatch.delitem(sys.modules, "sb3_pearl.reproduce.ray_backend")
-    monkeypatch.delitem(sys.modules, "sb3_pearl.reproduce.ray_trial")
+    monkeypatch.delitem(sys.modules, "pearl_paper.reproduce.ray_backend")
+    monkeypatch.delitem(sys.modules, "pearl_paper.reproduce.ray_trial")
     assert main([*args, "--backend", "ray"]) == 2
     err = capsys.readouterr().err
     assert err.strip() == f"error: {RAY_MISSING}" and 'pip install -e ".[ray]"' in err

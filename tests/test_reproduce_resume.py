@@ -1,5 +1,5 @@
 """Harness runs that survive interruption: a run killed inside an iteration or inside its meta-test, then run again,
-writes the result.json metrics of an uninterrupted run, bit for bit (sb3_pearl/reproduce/checkpoint.py)."""
+writes the result.json metrics of an uninterrupted run, bit for bit (pearl_paper/reproduce/checkpoint.py)."""
 
 from __future__ import annotations
 
@@ -10,15 +10,16 @@ from typing import Any
 
 import pytest
 
-from sb3_pearl.experiments.budgets import load_budget
-from sb3_pearl.reproduce import checkpoint
-from sb3_pearl.reproduce.cells import load_partway_curves
-from sb3_pearl.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
-from sb3_pearl.reproduce.cli import main
-from sb3_pearl.reproduce.curve import CURVE_FILE, read_curve
-from sb3_pearl.reproduce.layout import RESULT_FILE
-from sb3_pearl.reproduce.report import build_report
-from sb3_pearl.reproduce.runner import run_one
+from pearl_paper.reproduce import checkpoint
+from pearl_paper.reproduce.cells import load_partway_curves
+from pearl_paper.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
+from pearl_paper.reproduce.cli import main
+from pearl_paper.reproduce.curve import CURVE_FILE, read_curve
+from pearl_paper.reproduce.layout import RESULT_FILE
+from pearl_paper.reproduce.report import build_report
+from pearl_paper.reproduce.runner import run_one
+from sb3_pearl.budgets import load_budget
+from tests.conftest import write_model_zip
 
 RUN = ("safe-point", "safe-point", "alpha-0.1", 0, "smoke")
 FOLDER = Path("safe-point", "safe-point", "alpha-0.1", "seed0")
@@ -114,12 +115,12 @@ def test_a_checkpoint_file_over_the_part_size_is_split_and_resumes_the_same(
 
 def test_status_projects_a_run_at_the_rate_between_its_last_two_checkpoints(tmp_path: Path) -> None:
     """A run whose first steps were cheap (PEARL's initial pool) is projected at its current rate, not its average."""
-    from sb3_pearl.experiments import get_experiment
-    from sb3_pearl.reproduce.status import format_status, run_status
+    from pearl_paper.experiments import get_experiment
+    from pearl_paper.reproduce.status import format_status, run_status
 
     folder = tmp_path / FOLDER / CHECKPOINT_DIR
     folder.mkdir(parents=True)
-    (folder / "model_240.zip").write_bytes(b"")
+    write_model_zip(folder / "model_240.zip")
     state = {"phase": "train", "files": {"model": "model_240.zip"}, "num_timesteps": 240, "phases": {},
              "spent": {"cpu_s": 24.0, "wall_s": 30.0}}  # fmt: skip
     experiment = get_experiment("safe-point")
@@ -135,7 +136,7 @@ def test_status_projects_a_run_at_the_rate_between_its_last_two_checkpoints(tmp_
     assert left({"cpu_s": 30.0, "steps": 120}) == pytest.approx([40.0, 24.0 + 40.0])  # seed 1: seed 0's projected total
 
     # the checkpoint's size: the files its state names and the state, not leftovers (a kill's temporary file)
-    (folder / "model_240.zip").write_bytes(b"m" * 1_500_000)
+    write_model_zip(folder / "model_240.zip", size=1_500_000)
     (folder / ".model_360.zip.tmp").write_bytes(b"t" * 9_000_000)
     rows = run_status(experiment, "smoke", [0, 1], tmp_path, ["safe-point"], ["alpha-0.1"])
     size = 1_500_000 + (folder / "state.json").stat().st_size
@@ -176,7 +177,7 @@ CURVE = {"every": 120, "n_tasks": 2, "n_adapt": 2, "n_prior_trajectories": 2}
 @pytest.fixture
 def with_curve(monkeypatch: pytest.MonkeyPatch) -> None:
     """The smoke budget with a learning curve every 120 steps (the reference's protocol: 2 prior trajectories)."""
-    import sb3_pearl.reproduce.runner as runner
+    import pearl_paper.reproduce.runner as runner
 
     def load(*args: Any) -> dict[str, Any]:
         return {**load_budget(*args), "curve": dict(CURVE)}

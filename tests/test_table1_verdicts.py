@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_pearl.experiments.table1_rules import MERGE_REMEASURE, RULES, PremiseGate
-from sb3_pearl.reproduce.layout import RunKey, run_dir
-from sb3_pearl.reproduce.report import build_report
-from sb3_pearl.reproduce.stats import sign_flip_interval, sign_flip_p_value
-from sb3_pearl.reproduce.table1_verdicts import (
+from pearl_paper.experiments.table1_rules import MERGE_REMEASURE, RULES, PremiseGate
+from pearl_paper.reproduce.layout import RunKey, run_dir
+from pearl_paper.reproduce.report import build_report
+from pearl_paper.reproduce.stats import sign_flip_interval, sign_flip_p_value
+from pearl_paper.reproduce.table1_verdicts import (
     AS_GOOD,
     INCONCLUSIVE,
     NOT_TESTED,
@@ -148,7 +148,7 @@ def test_reductions_name_what_the_cpu_runs_cut_from_the_paper_budget() -> None:
 def test_tables_2_and_3_show_the_remeasured_numbers_beside_their_own(tmp_path: Path) -> None:
     """Issue 36, run 1: the report shows Tables II and III's rows re-measured beside the runs' own numbers, paired
     with the table's reference on common seeds; a finished run without the record is named, not mixed in."""
-    from sb3_pearl.reproduce.remeasured_tables import remeasured_section
+    from pearl_paper.reproduce.remeasured_tables import remeasured_section
 
     # Table III: alpha 0 re-measured k = 0 at 8%, 6%, 10% (own meta-test 20%); alpha 0.01 at 1%, 2% on seeds 0-1
     # -> its paired differences -7, -4 points: mean -5.5, sd 2.121, t(0.975, 1) = 12.706 -> half-width 19.06.

@@ -66,7 +66,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
     For writers that take a path (``matplotlib``'s ``savefig``, a library's ``save(path)``). The
     temporary path keeps the destination's extension (writers that pick the format from it work);
     the writer must write exactly that path. On an exception the temporary file is removed and
-    ``path`` is untouched.
+    ``path`` is untouched; a write error (an ``OSError`` about the temporary file, e.g. no space left on the device)
+    is raised again as the same ``OSError`` type whose message names ``path``.
 
     :param path: the destination file (its folder is created if missing)
     :return: the temporary path to write
@@ -92,6 +93,13 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
             os.fsync(file.fileno())
         os.chmod(tmp, _default_file_mode() if not destination.exists() else destination.stat().st_mode & 0o777)
         os.replace(tmp, destination)
+    except OSError as error:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if error.filename not in (None, str(tmp)):
+            raise  # about another file than the one written
+        # a write error (no space left, file too large, ...): name the destination, which keeps its previous content
+        raise type(error)(error.errno, f"cannot write {destination}: {error.strerror or error}") from None
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()

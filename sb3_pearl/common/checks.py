@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 from collections.abc import Callable
 from typing import Any
 
@@ -134,6 +135,9 @@ def output_folder_problem(path: str) -> str | None:
     Why ``path`` cannot be an output folder (it or the nearest existing folder above it is a file, or not writable),
     or None when it can: the check of a results or log folder before any run starts.
 
+    Writability is asked (``os.access``), then tried: a folder is created in the nearest existing one and removed at
+    once (``os.access`` says yes to root for a read-only file system or a pseudo file system such as /sys).
+
     :param path: the folder (it need not exist)
     :return: the problem, or None
     """
@@ -144,6 +148,10 @@ def output_folder_problem(path: str) -> str | None:
         return f"{existing} is a file, not a folder"
     if not os.access(existing, os.W_OK | os.X_OK):
         return f"{existing} is not writable"
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".write-probe-", dir=existing))
+    except OSError as error:
+        return f"{existing} is not writable ({error.strerror or error})"
     return None
 
 

@@ -181,7 +181,7 @@ def restore_env_state(env: VecEnv | None, state: dict[str, Any]) -> bool:
             saved, installed = state.get("mujoco"), _mujoco_version()
             if saved is not None and saved == installed:
                 raise  # the same MuJoCo wrote it: not a version mismatch, a bug to see whole
-            writer = f"MuJoCo {saved}" if saved else "a MuJoCo whose version it does not record (written before 2026-12-04)"
+            writer = f"MuJoCo {saved}" if saved else "a MuJoCo whose version it does not record (an older file)"
             raise EnvStateError(
                 f"the envs' saved mid-episode state cannot be read here ({type(error).__name__}: {error}); it was written "
                 f"with {writer} and this process has MuJoCo {installed or '(not loaded)'}: install the version that "

@@ -54,6 +54,7 @@ from sb3_pearl.common.seeding import capture_training_rng_state, restore_trainin
 from sb3_pearl.common.tasks import (
     check_meta_env,
     env_task_family,
+    family_fix,
     resolve_train_test_tasks,
     task_family_problem,
     vec_env_task_error,
@@ -199,10 +200,8 @@ class MetaAlgorithm(BaseAlgorithm):
             family = env_task_family(self.env)
             problem = task_family_problem(self.task_family, [], family, None)  # the tasks: resolve_train_test_tasks
             if problem is not None:
-                raise ValueError(
-                    f"{type(self).__name__}: the env is not of the task family of the model: {problem}; give it an env of "
-                    "that family"
-                )
+                fix = family_fix(self.task_family, "give it an env of that family:", "give it an env of that family")
+                raise ValueError(f"{type(self).__name__}: the env is not of the task family of the model: {problem}; {fix}")
             self.task_family = family if family is not None else self.task_family
             self.train_tasks, self.test_tasks = resolve_train_test_tasks(
                 self.env, self.train_tasks, self.test_tasks, self.n_train_tasks, self.n_test_tasks, self.seed
@@ -231,10 +230,8 @@ class MetaAlgorithm(BaseAlgorithm):
         family = env_task_family(vec_env)
         problem = task_family_problem(self.task_family, self.train_tasks, family, vec_env_task_error(vec_env))
         if problem is not None:
-            raise ValueError(
-                f"{name}.set_env: the env is not of the task family the model was trained on: {problem}; give it an env "
-                "of that family"
-            )
+            fix = family_fix(self.task_family, "give it an env of that family:", "give it an env of that family")
+            raise ValueError(f"{name}.set_env: the env is not of the task family the model was trained on: {problem}; {fix}")
         super().set_env(vec_env, force_reset)
         self.task_family = family if family is not None else self.task_family
 

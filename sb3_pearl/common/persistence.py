@@ -64,12 +64,26 @@ def resolve_model_path(path: str | os.PathLike[str]) -> pathlib.Path:
     raise FileNotFoundError(f"no model zip at {path} (nor {with_zip}): check the path")
 
 
+class DamagedModelError(ValueError):
+    """
+    A model zip that cannot be read: truncated, corrupt or not a Stable-Baselines3 zip.
+
+    :param problem: what is wrong, naming the file (:attr:`problem`, for callers that give their own fix)
+    :param fix: what to do about it
+    """
+
+    def __init__(self, problem: str, fix: str) -> None:
+        super().__init__(f"{problem}: {fix}")
+        self.problem = problem
+
+
 def read_model_data(path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     The ``data`` entry of an SB3 model zip as a JSON dict (serialised objects stay strings), after a CRC check of every entry.
 
     :param path: the model zip (or its path without ``.zip``)
     :return: the saved class parameters
+    :raises DamagedModelError: the zip is truncated, corrupt or not a model zip
     """
     file = resolve_model_path(path)
     fix = (
@@ -79,19 +93,19 @@ def read_model_data(path: str | os.PathLike[str]) -> dict[str, Any]:
     try:
         with zipfile.ZipFile(file) as archive:
             if "data" not in archive.namelist():
-                raise ValueError(f"{file} holds no 'data' entry, so it is not a Stable-Baselines3 model zip: {fix}")
+                raise DamagedModelError(f"{file} holds no 'data' entry, so it is not a Stable-Baselines3 model zip", fix)
             bad_entry = archive.testzip()
             if bad_entry is not None:
-                raise ValueError(f"{file}: the entry {bad_entry!r} fails its CRC check: {fix}")
+                raise DamagedModelError(f"{file}: the entry {bad_entry!r} fails its CRC check", fix)
             raw = archive.read("data")
     except (zipfile.BadZipFile, EOFError, zlib.error) as error:
-        raise ValueError(f"{file} is not a readable zip ({error}): {fix}") from None
+        raise DamagedModelError(f"{file} is not a readable zip ({error})", fix) from None
     try:
         data = json.loads(raw)
     except ValueError as error:
-        raise ValueError(f"{file}: its 'data' entry is not valid JSON ({error}): {fix}") from None
+        raise DamagedModelError(f"{file}: its 'data' entry is not valid JSON ({error})", fix) from None
     if not isinstance(data, dict):
-        raise ValueError(f"{file}: its 'data' entry is not a dict of class parameters: {fix}")
+        raise DamagedModelError(f"{file}: its 'data' entry is not a dict of class parameters", fix)
     return data
 
 
@@ -209,10 +223,25 @@ def read_replay_buffer(
     try:
         return load_from_pkl(path, verbose)
     except (EOFError, pickle.UnpicklingError) as error:
-        raise ValueError(
-            f"{path} is not a complete replay buffer pickle ({type(error).__name__}: {error}): the file is truncated or "
-            "corrupt; save the replay buffer again, or train without it"
-        ) from None
+        raise IncompleteReplayBufferError(path, error) from None
+
+
+class IncompleteReplayBufferError(ValueError):
+    """
+    A replay buffer pickle that is empty, truncated or corrupt (e.g. a copy or a save cut short, a full disk).
+
+    :param path: the pickle
+    :param error: what unpickling it raised
+    """
+
+    def __init__(self, path: Any, error: BaseException) -> None:
+        self.path = path
+        empty = isinstance(path, (str, os.PathLike)) and os.path.isfile(path) and os.path.getsize(path) == 0
+        self.reason = "0 bytes: the file is empty" if empty else f"{type(error).__name__}: {error}"
+        super().__init__(
+            f"{path} is not a complete replay buffer pickle ({self.reason}): the file is truncated or corrupt; save the "
+            "replay buffer again, or train without it"
+        )
 
 
 def save_replay_buffer_file(
@@ -296,6 +325,8 @@ __all__ = [
     "expand_buffer",
     "loaded_model_data",
     "read_model_data",
+    "DamagedModelError",
+    "IncompleteReplayBufferError",
     "read_replay_buffer",
     "refuse_model_zip",
     "resolve_model_path",

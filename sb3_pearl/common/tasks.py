@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from gymnasium import spaces
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from sb3_pearl.envs.task_protocol import TASK_METHODS, Task
 
@@ -88,6 +88,38 @@ def vec_env_task_error(env: Any) -> Callable[[Task], str | None] | None:
     return lambda task: env.env_method("task_error", task, indices=[0])[0]
 
 
+def family_env_ids(family: str | None) -> list[str]:
+    """
+    The registered env ids of a task family: those whose entry point is the family's class (a family's name is its
+    class name, :meth:`~sb3_pearl.envs.task_protocol.MetaTaskEnv.task_family`), for the fix a message suggests.
+
+    :param family: the family's name (None: not recorded)
+    :return: e.g. ``["PointGoalMeta-v0"]``; empty for None or a family no registered id builds
+    """
+    import gymnasium as gym
+
+    if family is None:
+        return []
+    return sorted(
+        env_id
+        for env_id, spec in gym.registry.items()
+        if isinstance(spec.entry_point, str) and spec.entry_point.rpartition(":")[2] == family
+    )
+
+
+def family_fix(family: str | None, how: str, otherwise: str) -> str:
+    """
+    The fix of a family mismatch: ``how`` followed by the family's env id(s), or ``otherwise`` when none is known.
+
+    :param family: the family the model was trained on (None: not recorded)
+    :param how: e.g. ``"pass --env"``
+    :param otherwise: e.g. ``"pass the --env it was trained on"``
+    :return: e.g. ``"pass --env PointGoalMeta-v0"``
+    """
+    ids = family_env_ids(family)
+    return f"{how} {' or '.join(ids)}" if ids else otherwise
+
+
 def task_family_problem(
     task_family: str | None,
     train_tasks: Sequence[Task],
@@ -114,6 +146,47 @@ def task_family_problem(
             if error is not None:
                 return f"its train_tasks[{index}] = {task!r} is not a task of the env ({error})"
     return None
+
+
+def set_vec_env_task(env: Any, task: Task, indices: Sequence[int] | None = None) -> None:
+    """
+    ``env.env_method("set_task", task, indices=indices)``, with a bad task refused in this process where a raising
+    ``set_task`` would kill a worker: outside a ``DummyVecEnv`` (a ``SubprocVecEnv``'s worker dies on an exception,
+    leaving an empty ``EOFError`` and a dead VecEnv) the task is first checked with the family's ``task_error``, which
+    does not raise; a worker that dies anyway is reported in one line naming the task.
+
+    :param env: a VecEnv of a task family (possibly wrapped)
+    :param task: the task
+    :param indices: the envs to set (None: all)
+    :raises ValueError: the env's ``task_error`` refuses the task (no env was changed)
+    :raises RuntimeError: a worker died on the task (the VecEnv is unusable)
+    """
+    innermost = _innermost_vec_env(env)
+    if isinstance(innermost, DummyVecEnv):
+        env.env_method("set_task", task, indices=indices)  # a bad task raises here, the env stays usable
+        return
+    if env.has_attr("task_error"):
+        first = None if indices is None else list(indices)[:1]
+        error = env.env_method("task_error", task, indices=first if first else [0])[0]
+        if error is not None:
+            raise ValueError(
+                f"set_task({task!r}): {error} (refused before it reached the {type(innermost).__name__}'s worker processes, "
+                "which die on an exception; the env is unchanged)"
+            )
+    try:
+        env.env_method("set_task", task, indices=indices)
+    except (EOFError, BrokenPipeError, ConnectionResetError) as error:
+        raise RuntimeError(
+            f"set_task({task!r}) ended a worker process of the {type(innermost).__name__} ({type(error).__name__}): the env "
+            "does not take that task (the worker's traceback is on stderr), and the VecEnv is unusable: make a new one"
+        ) from None
+
+
+def _innermost_vec_env(env: Any) -> Any:
+    """The VecEnv below every ``VecEnvWrapper`` (``venv`` attributes)."""
+    while isinstance(getattr(env, "venv", None), VecEnv):
+        env = env.venv
+    return env
 
 
 def draw_train_test_tasks(env: Any, n_train: int, n_test: int, seed: int | None) -> tuple[list[Task], list[Task]]:

@@ -35,6 +35,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from sb3_pearl.common.adaptation import AdaptiveModel, check_adaptive
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.seeding import derived_seed, get_global_rng_state, seed_global_rngs, set_global_rng_state
+from sb3_pearl.common.tasks import set_vec_env_task
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.evaluation.progress import ProgressBar
 from sb3_pearl.evaluation.statistics import format_summary_table, summarize
@@ -242,7 +243,7 @@ class SingleEnvRunner:
 
     def set_task(self, task: Task) -> None:
         if self.vec_env is not None:
-            self.vec_env.env_method("set_task", task)
+            set_vec_env_task(self.vec_env, task)  # a bad task: one line, the workers of a SubprocVecEnv alive
         else:
             assert self.env is not None
             base = self.env.unwrapped

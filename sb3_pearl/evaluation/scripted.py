@@ -1,7 +1,7 @@
 """A scripted, task-independent policy with the adaptation API, so that the meta-test protocol can roll it out.
 
 :class:`ScriptedPolicy` never adapts: ``observe`` and ``adapt`` do nothing, so every trajectory k acts as
-k = 0 does. It is the bar of the prior-optimality gap (:mod:`sb3_pearl.reproduce.prior_measures`): what a
+k = 0 does. It is the bar of the prior-optimality gap (``pearl_paper.reproduce.prior_measures``, the paper's harness): what a
 prior policy, which acts before it has seen any data of the task, could score with no task data at all.
 """
 

@@ -31,13 +31,14 @@ from sb3_pearl.common.checks import check_int, check_real
 from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
 from sb3_pearl.common.persistence import (
+    IncompleteReplayBufferError,
     check_buffer_tasks,
     expand_buffer,
     refuse_model_zip,
     save_replay_buffer_file,
     saved_arguments,
 )
-from sb3_pearl.common.tasks import env_time_limit
+from sb3_pearl.common.tasks import env_time_limit, set_vec_env_task
 from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune.discrete_sac import DiscreteSAC, DiscreteSACPolicy, check_sac_arguments
@@ -205,10 +206,7 @@ class FineTune(MetaAlgorithm, DiscreteSAC):
         try:
             super().load_replay_buffer(path, truncate_last_traj)
         except (EOFError, pickle.UnpicklingError) as error:
-            raise ValueError(
-                f"{path} is not a complete replay buffer pickle ({type(error).__name__}: {error}): the file is truncated "
-                "or corrupt; save the replay buffer again, or train without it"
-            ) from None
+            raise IncompleteReplayBufferError(path, error) from None
         expand_buffer(self.replay_buffer)
         try:
             check_buffer_tasks(self.replay_buffer, self.train_tasks, path)
@@ -224,7 +222,7 @@ class FineTune(MetaAlgorithm, DiscreteSAC):
         assert self.env is not None
         for index in env_indices:
             task = self.train_tasks[np.random.randint(len(self.train_tasks))]
-            self.env.env_method("set_task", task, indices=[int(index)])
+            set_vec_env_task(self.env, task, [int(index)])
 
     def _before_env_reset(self) -> None:
         """The tasks of the first episodes of a ``learn()`` (SB3's reset of the envs applies them)."""

@@ -18,6 +18,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.divergence import check_env_step
+from sb3_pearl.common.tasks import set_vec_env_task
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.policies import MAMLPolicy, Params
 from sb3_pearl.maml.type_aliases import EpisodeBatch
@@ -113,7 +114,7 @@ def collect_episodes(
             break
         env_slot[i] = (task_idx, int(next_episode[task_idx]))
         next_episode[task_idx] += 1
-        env.env_method("set_task", tasks[task_idx], indices=[i])
+        set_vec_env_task(env, tasks[task_idx], [i])
     obs = np.asarray(env.reset(), dtype=np.float32).reshape(n_envs, obs_dim)
 
     continue_training = True
@@ -153,7 +154,7 @@ def collect_episodes(
             env_slot[i] = (next_task, int(next_episode[next_task]))
             next_episode[next_task] += 1
             if next_task != task_idx:
-                env.env_method("set_task", tasks[next_task], indices=[i])
+                set_vec_env_task(env, tasks[next_task], [i])
                 new_obs[i] = reset_one(env, i)
             elif not dones[i]:  # cut at max_episode_steps before the env's own limit
                 new_obs[i] = reset_one(env, i)

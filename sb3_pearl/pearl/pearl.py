@@ -31,6 +31,7 @@ from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transi
 from sb3_pearl.common.networks import polyak_update_foreach
 from sb3_pearl.common.persistence import check_buffer_tasks, read_replay_buffer, save_replay_buffer_file, saved_arguments
 from sb3_pearl.common.precision import resolve_bf16
+from sb3_pearl.common.tasks import set_vec_env_task
 from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, PosteriorSample, TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.pearl.arguments import check_pearl_arguments
@@ -638,7 +639,7 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
 
     def _start_segment(self, env: VecEnv, slot: int, segment: Segment, obs: np.ndarray) -> None:
         """Switch env ``slot`` to the segment's task and reset it explicitly (no auto-reset leak)."""
-        env.env_method("set_task", self.train_tasks[segment.task], indices=[slot])
+        set_vec_env_task(env, self.train_tasks[segment.task], [slot])
         obs[slot] = env.env_method("reset", indices=[slot])[0][0]
 
     def _draw_z(self, segment: Segment) -> th.Tensor:

@@ -7,7 +7,7 @@ USAGE = """sb3_pearl.zoo is the library behind the command line (docs/cli.md). R
   python -m sb3_pearl.train --algo pearlplus --env SafePointGoalMeta-v0      train (sb3-pearl-train; train.py in a checkout)
   python -m sb3_pearl.enjoy --algo pearlplus --env SafePointGoalMeta-v0      watch a trained model adapt (sb3-pearl-enjoy)
   python -m sb3_pearl.plots logs/pearlplus/SafePointGoalMeta-v0_1           figures of a run's meta-test
-  python -m sb3_pearl.demo                                                  PEARL and PEARL+ on the fast family
+  python -m pearl_paper.demo                                                  PEARL and PEARL+ on the fast family (a checkout)
 
 Add -h to any of them for its flags."""
 

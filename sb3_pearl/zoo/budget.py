@@ -1,36 +1,39 @@
 """``train.py --budget PRESET``: a family's entry of a budget preset as the zoo's hyperparameters.
 
-The presets (``sb3_pearl/config/presets/*.yml``, read by
-:func:`~sb3_pearl.experiments.budgets.load_budget`) are the one source of the reproduction harness's budgets;
-``--budget cpu`` trains with the same entry (sized for one run <= 45 minutes on one core; the timings: docs/reproduce.md)
-instead of the paper-sized entry of ``zoo_hyperparams/<algo>.yml``. Env ids map to the presets' family names through
-:data:`sb3_pearl.experiments.families.FAMILIES`.
+The presets (``sb3_pearl/config/presets/*.yml``, read by :func:`~sb3_pearl.budgets.load_budget`) are the one source
+of the reproduction harness's budgets; ``--budget cpu`` trains with the same entry (sized for one run <= 45 minutes on
+one core; the timings: docs/reproduce.md) instead of the paper-sized entry of ``zoo_hyperparams/<algo>.yml``. Env ids
+map to the presets' family names through :data:`sb3_pearl.budgets.ENV_PRESET_FAMILY`.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from sb3_pearl.experiments.budgets import PRESETS, load_budget, preset_entries
-from sb3_pearl.experiments.families import FAMILIES
-from sb3_pearl.experiments.spec import Family
+from sb3_pearl.budgets import ENV_PRESET_FAMILY, PRESETS, load_budget, preset_entries
 from sb3_pearl.zoo.usage import UsageError
 
 
-def env_family(env_id: str) -> Family | None:
+def env_family(env_id: str) -> str | None:
     """
-    The family of the reproduction experiments that trains on ``env_id`` (None: none does).
+    The presets' family key that ``train.py --budget`` uses for ``env_id`` (None: no family trains on it).
 
     :param env_id: a registered env id
-    :return: the family
+    :return: the family name, a top-level key of the presets
     """
-    return next((family for family in FAMILIES.values() if family.env_id == env_id), None)
+    return ENV_PRESET_FAMILY.get(env_id)
 
 
 def families_with(preset: str, algo: str) -> list[str]:
-    """``"<EnvId> (<family>)"`` for every family with an entry for ``algo`` in ``preset``."""
+    """
+    ``"<EnvId> (<family>)"`` for every family with an entry for ``algo`` in ``preset``.
+
+    :param preset: ``smoke``, ``cpu`` or ``paper``
+    :param algo: zoo algorithm name
+    :return: one label per env id
+    """
     entries = preset_entries(preset)
-    return [f"{f.env_id} ({f.budget_name})" for f in FAMILIES.values() if algo in entries.get(f.budget_name, [])]
+    return [f"{env_id} ({family})" for env_id, family in ENV_PRESET_FAMILY.items() if algo in entries.get(family, [])]
 
 
 def budget_hyperparams(preset: str, env_id: str, algo: str) -> dict[str, Any]:
@@ -46,14 +49,14 @@ def budget_hyperparams(preset: str, env_id: str, algo: str) -> dict[str, Any]:
     if preset not in PRESETS:
         raise UsageError(f"--budget {preset}: unknown budget preset, choose among {', '.join(PRESETS)}")
     family = env_family(env_id)
-    if family is None or algo not in preset_entries(preset).get(family.budget_name, []):
+    if family is None or algo not in preset_entries(preset).get(family, []):
         have = families_with(preset, algo)
         raise UsageError(
             f"--budget {preset}: the {preset} preset has no {algo} entry for {env_id}; it has one for "
             f"{', '.join(have) or 'no env'} (sb3_pearl/config/presets/{preset}.yml). Without --budget, "
             f"lower -n or the network sizes with -params"
         )
-    budget = load_budget(preset, family.budget_name, algo)
+    budget = load_budget(preset, family, algo)
     kwargs = dict(budget["kwargs"])  # plain data as in the preset (activation by name): the run's config.yml stays so
     return {
         "n_timesteps": budget["n_timesteps"],

@@ -36,27 +36,29 @@ import re
 import shutil
 import sys
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pprint import pprint
 from typing import Any
+from unittest import mock
 
 import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_pearl.budgets import model_kwargs
 from sb3_pearl.common.adaptation import has_adaptation_api
 from sb3_pearl.common.checks import check_learning_rate
+from sb3_pearl.common.persistence import IncompleteReplayBufferError
 from sb3_pearl.common.threads import mark_num_threads_explicit, num_threads_flag
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.held_out import check_meta_test_settings, model_test_tasks, write_meta_test
-from sb3_pearl.experiments.budgets import model_kwargs
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags
-from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager
+from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager, SetupInterrupted
 from sb3_pearl.zoo.meta_testing import SHORT_RUN_FRACTION, ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
-from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces
+from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces, check_saved_model_family
 from sb3_pearl.zoo.registry import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, get_latest_run_id, run_zoo_train
 from sb3_pearl.zoo.safe_config import parse_dict_string
@@ -100,6 +102,9 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
     :param resume: ``--resume``: continue the checkpoint given as ``-i`` with its counters, up to ``n_timesteps`` in all
     :param budget: ``--budget PRESET``: the family's entry of that budget preset replaces the YAML entry
     :param command: ``train.py``'s command line (the resume command of a run cut by a signal is made from it)
+    :param checkpoint_minutes: ``--checkpoint-minutes M``: a resumable checkpoint every M minutes of training (0: off)
+    :param resume_without_buffer: ``--resume-without-buffer``: a replay buffer that is empty, truncated or corrupt is
+        skipped with a warning naming it (the run goes on from an empty buffer) instead of refused
     """
 
     _reserved_folder: str | None = None  # the run folder this manager created (removed if the set-up fails)
@@ -115,12 +120,13 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         budget: str | None = None,
         command: Sequence[str] = (),
         checkpoint_minutes: float = DEFAULT_CHECKPOINT_MINUTES,
+        resume_without_buffer: bool = False,
         **kwargs: Any,
     ) -> None:
         if kwargs.get("config") is None and os.path.isfile(default_config(algo)):
             kwargs["config"] = default_config(algo)  # else rl_zoo3's own file (its algorithms)
         self.resume, self.budget, self.command = resume, budget, list(command)
-        self.checkpoint_minutes = checkpoint_minutes
+        self.checkpoint_minutes, self.resume_without_buffer = checkpoint_minutes, resume_without_buffer
         super().__init__(args, algo, env_id, log_folder, *posargs, **kwargs)
         self.meta_test_kwargs = dict(ZOO_META_TEST_DEFAULTS)
         self.adaptive = has_adaptation_api(ALGOS[algo])
@@ -243,12 +249,14 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         rl_zoo3's set-up; a ValueError on the way (a value the env or the algorithm refuses) is a user error. For an
         algorithm with the adaptation API, the held-out tasks of the meta-tests are drawn once here, so that a draw
         that hits training tasks (``--seed`` equal to the eval seed, a family with few distinct tasks) is refused
-        before training, not after it. A set-up that fails removes the run folder it reserved: nothing is left behind.
+        before training, not after it. A set-up that fails, or that SIGTERM / Ctrl-C stops, removes the run folder it
+        reserved: nothing is left behind.
         """
         try:
-            setup = super().setup_experiment()
-            if setup is not None and self.adaptive:
-                self._check_held_out_tasks(setup[0])
+            with self.stop_signals_abort_setup():  # SIGTERM / Ctrl-C here: SetupInterrupted, the folder removed below
+                setup = super().setup_experiment()
+                if setup is not None and self.adaptive:
+                    self._check_held_out_tasks(setup[0])
             return setup
         except UsageError:
             self._remove_reserved_folder()
@@ -296,12 +304,45 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
 
     def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: VecEnv) -> BaseAlgorithm:
         check_model_env(self.trained_agent, self.env_name.gym_id)
-        model = super()._load_pretrained_agent(hyperparams, env)  # with <folder>/replay_buffer.pkl if there is one
+        flag = "--resume" if self.resume else "-i"  # another family: the fix is --env, not the constructor's advice
+        check_saved_model_family(self.trained_agent, env, self.env_name.gym_id, model_label=f"{flag} {self.trained_agent}")
+        algo_class = ALGOS[self.algo]
+        load_buffer = getattr(algo_class, "load_replay_buffer", None)
+        if load_buffer is None:  # on-policy (MAML): no buffer to load
+            return super()._load_pretrained_agent(hyperparams, env)
+
+        def checked_load(model: BaseAlgorithm, path: str, *args: Any, **kwargs: Any) -> None:
+            self._load_replay_buffer(load_buffer, model, path, *args, **kwargs)
+
+        with mock.patch.object(algo_class, "load_replay_buffer", checked_load):  # rl_zoo3's <folder>/replay_buffer.pkl
+            model = super()._load_pretrained_agent(hyperparams, env)
         buffer_path = checkpoint_replay_buffer_path(self.trained_agent)
-        if buffer_path is not None and os.path.isfile(buffer_path) and hasattr(model, "load_replay_buffer"):
+        if buffer_path is not None and os.path.isfile(buffer_path):
             print(f"Loading the checkpoint's replay buffer {buffer_path}")
-            model.load_replay_buffer(buffer_path)
+            self._load_replay_buffer(load_buffer, model, buffer_path)
         return model
+
+    def _load_replay_buffer(
+        self, load: Callable[..., Any], model: BaseAlgorithm, path: str, *args: Any, **kwargs: Any
+    ) -> None:
+        """
+        ``load(model, path)`` (the class's ``load_replay_buffer``); an empty, truncated or corrupt pickle is a one-line
+        error naming the file and the flag that goes on without it, or with ``--resume-without-buffer`` a warning (the
+        model keeps its empty buffer).
+        """
+        try:
+            load(model, path, *args, **kwargs)
+        except IncompleteReplayBufferError as error:
+            problem = f"{path} is not a complete replay buffer pickle ({error.reason})"
+            if not self.resume_without_buffer:
+                fix = (
+                    "add --resume-without-buffer to resume from an empty buffer (the run then differs from the "
+                    "uninterrupted one)"
+                    if self.resume
+                    else "move it away to continue training from an empty buffer"
+                )
+                raise UsageError(f"{problem}: {fix}") from None
+            print(f"Warning: {problem}: going on from an empty replay buffer (--resume-without-buffer)", flush=True)
 
     def after_save(self, model: BaseAlgorithm) -> None:
         """After the save: the final meta-test of an algorithm with the adaptation API (Ctrl-C / SIGTERM skip it)."""
@@ -402,9 +443,13 @@ def train(argv: Sequence[str] | None = None) -> None:
             budget=flags.budget,
             command=flags.command,
             checkpoint_minutes=flags.checkpoint_minutes,
+            resume_without_buffer=flags.resume_without_buffer,
         )
         try:
             run_zoo_train(flags.zoo_args, manager, CheckedStoreDict)  # CheckedStoreDict: a bad -params value is one line
+        except SetupInterrupted as stop:
+            print(f"Stopped by {stop.signal_name} before training: nothing trained or saved, no run folder kept", flush=True)
+            raise SystemExit(stop.exit_status) from None
         except SystemExit:
             if {"-h", "--help"} & set(flags.zoo_args):
                 print(PROJECT_FLAGS_HELP)

@@ -23,8 +23,9 @@ sb3-pearl flags (docs/cli.md):
   --resume CHECKPOINT   continue a --save-freq checkpoint (or a run's model) up to n_timesteps in all, with its
                         replay buffer and RNG states
   --resume-without-buffer
-                        let --resume go on when the checkpoint has no replay buffer beside it (the run then
-                        restarts from an empty buffer and differs from an uninterrupted one)
+                        let --resume go on when the checkpoint has no replay buffer beside it, or an empty or
+                        truncated one (the run then restarts from an empty buffer and differs from an
+                        uninterrupted one)
   --checkpoint-minutes M
                         save a resumable checkpoint (checkpoint_<steps>_steps*.zip and its replay buffer, atomic,
                         the previous one deleted) every M minutes of training, at the next gradient step or
@@ -41,6 +42,7 @@ class ProjectFlags(NamedTuple):
     resume: bool  # --resume: -i continues the checkpoint's run (counters kept) up to n_timesteps in all
     budget: str | None  # --budget PRESET: the family's entry of that budget preset replaces the YAML entry
     checkpoint_minutes: float = DEFAULT_CHECKPOINT_MINUTES  # --checkpoint-minutes M: periodic checkpoints (0: off)
+    resume_without_buffer: bool = False  # --resume-without-buffer: a missing or unreadable buffer leaves it empty
 
 
 def parse_project_flags(args: list[str]) -> ProjectFlags:
@@ -101,7 +103,7 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
         if not (math.isfinite(checkpoint_minutes) and checkpoint_minutes >= 0):
             raise UsageError(f"--checkpoint-minutes takes minutes >= 0 (0: no periodic checkpoint), got {value!r}")
         del args[index : index + 2]
-    return ProjectFlags(args, command, resume, budget, checkpoint_minutes)
+    return ProjectFlags(args, command, resume, budget, checkpoint_minutes, without_buffer)
 
 
 def check_resume_buffer(checkpoint: str, algo: str | None) -> None:

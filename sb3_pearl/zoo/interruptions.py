@@ -6,25 +6,32 @@
   point where it can be resumed exactly (:class:`StopOnSignalCallback`; a second signal stops at once), the model and
   its replay buffer are saved, the run is marked cut (``interrupted.json`` in the run folder, what follows the save
   is skipped) and ``train.py`` exits with status 128 + the signal (143 for SIGTERM, 130 for SIGINT);
+- a signal during the set-up (before training) stopping it at once, the run folder it reserved removed
+  (:class:`SetupInterrupted`, exit status 128 + the signal);
 - an exception during training saving the model reached so far into the run folder, saying where, re-raised;
+- a final save that fails (no space left, ...) answered in one line naming the file (exit status 1);
 - ``--resume`` (:attr:`resume`): training continues a checkpoint's run with its counters, up to ``n_timesteps``.
 """
 
 from __future__ import annotations
 
+import errno
+import glob
 import json
 import os
 import shlex
 import signal
 import sys
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.common.callbacks import StopOnSignalCallback, StopRequested
 from sb3_pearl.zoo.rl_zoo3_coupling import ExperimentManager
 from sb3_pearl.zoo.usage import program_name
 
@@ -32,42 +39,23 @@ INTERRUPTED_FILE = "interrupted.json"  # in the run folder of a run cut by a sig
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
-class StopRequested(KeyboardInterrupt):
-    """Raised at an iteration start once a stop was asked for: rl_zoo3's ``learn`` stops as after Ctrl-C."""
-
-
-class StopOnSignalCallback(BaseCallback):
+class SetupInterrupted(KeyboardInterrupt):
     """
-    Stops training, once :attr:`requested`, where the state is one a checkpoint holds, so the saved model resumes
-    exactly: at the next rollout start (PEARL and MAML call it at an iteration start, before the iteration's draws;
-    Fine-Tune and SB3's algorithms before each collection), or, for PEARL / PEARL+, at the next env step (the
-    iteration is kept open, ``model._open_iteration``, and finished by the resumed run) or the next gradient step (the
-    iteration's steps still to train are saved with the model and trained first by the resumed run). A stop therefore
-    lands within one gradient step or env step at any budget: seconds, within every scheduler's grace period.
+    SIGTERM or SIGINT during the set-up, before training: nothing to save, so the set-up stops where it is and the run
+    folder it reserved is removed (a half-made folder without a model was left before, and ``enjoy.py``'s "latest
+    run" was then that empty folder).
+
+    :param signal_name: ``"SIGTERM"`` or ``"SIGINT"``
     """
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.requested = False
-        self.stopped = False  # training stopped here (False: it ended on its own or was stopped at once)
+    def __init__(self, signal_name: str) -> None:
+        super().__init__(signal_name)
+        self.signal_name = signal_name
 
-    def _on_step(self) -> bool:
-        if self.requested and hasattr(self.model, "_open_iteration"):
-            self.stopped = True
-            return False
-        return True
-
-    def on_gradient_step(self) -> bool:
-        """Between two of PEARL's gradient steps (:func:`~sb3_pearl.common.callbacks.gradient_step_event`): stop there."""
-        if self.requested:
-            self.stopped = True
-            return False
-        return True
-
-    def _on_rollout_start(self) -> None:
-        if self.requested:
-            self.stopped = True
-            raise StopRequested
+    @property
+    def exit_status(self) -> int:
+        """128 + the signal, as a process killed by it."""
+        return 128 + int(signal.Signals[self.signal_name])
 
 
 class InterruptibleExperimentManager(ExperimentManager):
@@ -139,6 +127,28 @@ class InterruptibleExperimentManager(ExperimentManager):
             except EOFError:
                 pass
 
+    @contextmanager
+    def stop_signals_abort_setup(self) -> Iterator[None]:
+        """
+        Within the block (the set-up), SIGTERM and SIGINT raise :class:`SetupInterrupted`: the caller removes what it
+        made; the previous handlers are back after the block.
+        """
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def abort(signum: int, frame: FrameType | None) -> None:
+            name = signal.Signals(signum).name
+            print(f"Received {name} during the set-up, before training: stopping (nothing to save)", flush=True)
+            raise SetupInterrupted(name)
+
+        previous = {signum: signal.signal(signum, abort) for signum in STOP_SIGNALS}
+        try:
+            yield
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+
     def _install_signal_handlers(self) -> dict[int, Any]:
         if threading.current_thread() is not threading.main_thread():
             return {}  # signal handlers can only be installed by the main thread
@@ -202,13 +212,16 @@ class InterruptibleExperimentManager(ExperimentManager):
             self._previous_handlers = self._install_signal_handlers()
         stopped_in_training = self._stop_signal is not None
         try:
-            super().save_trained_model(model)
-            buffer_path = None
-            if stopped_in_training and getattr(model, "replay_buffer", None) is not None:
-                buffer_path = os.path.join(self.save_path, "replay_buffer.pkl")
-                if not self.save_replay_buffer:
-                    print("Saving replay buffer (for the resume)")
-                    model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
+            try:
+                super().save_trained_model(model)
+                buffer_path = None
+                if stopped_in_training and getattr(model, "replay_buffer", None) is not None:
+                    buffer_path = os.path.join(self.save_path, "replay_buffer.pkl")
+                    if not self.save_replay_buffer:
+                        print("Saving replay buffer (for the resume)")
+                        model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
+            except OSError as error:  # e.g. no space left: one line, not the writer's chained tracebacks
+                raise SystemExit(self._save_failed_message(error)) from None
             if not stopped_in_training:
                 self._phase = "after save"  # a signal now stops what follows the save
                 try:
@@ -221,18 +234,41 @@ class InterruptibleExperimentManager(ExperimentManager):
         if self._stop_signal is not None:
             self._mark_interrupted(model, stopped_in_training, buffer_path if stopped_in_training else None)
 
+    def _save_failed_message(self, error: OSError) -> str:
+        """
+        The one line for a final save that failed (no space left on the device, a file too large, ...): the file (the
+        writers name it, :func:`~sb3_pearl.common.atomic.atomic_path`), that nothing older was overwritten, and the
+        checkpoint to resume from if the run wrote one.
+        """
+        problem = str(error.strerror or error)
+        if error.errno is not None and error.errno in errno.errorcode:
+            problem += f" ({errno.errorcode[error.errno]})"
+        checkpoints = glob.glob(os.path.join(self.save_path, "*_steps*.zip"))
+        resume = "free space (or choose another -f) and train again"
+        if checkpoints:
+            latest = max(checkpoints, key=os.path.getmtime)
+            resume = f"free space, then resume the run's last checkpoint: {self._resume_command(latest)}"
+        return (
+            f"{program_name()}: error: saving the trained model failed: {problem}; nothing older was overwritten (every "
+            f"save writes a temporary file and renames it into place, and the temporary file was removed): {resume}"
+        )
+
+    def _resume_command(self, model_path: str) -> str:
+        """``train.py``'s command line with ``--resume model_path`` instead of ``-i`` / ``--resume``."""
+        args = [arg for arg in self.command if arg != "--resume-without-buffer"]
+        for flag in ("--resume", "--trained-agent", "-i"):
+            while flag in args:
+                index = args.index(flag)
+                del args[index : index + 2]
+        return " ".join([program_name(), *map(shlex.quote, args), "--resume", shlex.quote(model_path)])
+
     def _mark_interrupted(self, model: BaseAlgorithm, in_training: bool, buffer_path: str | None) -> None:
         """Write ``interrupted.json``, say what was saved and how to go on, and exit with status 128 + the signal."""
         assert self._stop_signal is not None
         signum = int(signal.Signals[self._stop_signal])
         finished = model.num_timesteps >= self.n_timesteps and int(getattr(model, "_pending_gradient_steps", 0)) == 0
         exact = in_training and not self._stopped_at_once and (self._stop_callback.stopped or finished)
-        args = [arg for arg in self.command if arg != "--resume-without-buffer"]
-        for flag in ("--resume", "--trained-agent", "-i"):
-            while flag in args:
-                index = args.index(flag)
-                del args[index : index + 2]
-        resume = " ".join([program_name(), *map(shlex.quote, args), "--resume", shlex.quote(self._model_path())])
+        resume = self._resume_command(self._model_path())
         record = {
             "signal": self._stop_signal,
             "during": "training" if in_training else "final meta-test",
@@ -271,4 +307,4 @@ class InterruptibleExperimentManager(ExperimentManager):
         """What runs once the trained model is saved (the meta-test manager's final meta-test); a signal stops it."""
 
 
-__all__ = ["INTERRUPTED_FILE", "InterruptibleExperimentManager", "StopOnSignalCallback", "StopRequested"]
+__all__ = ["INTERRUPTED_FILE", "InterruptibleExperimentManager", "SetupInterrupted", "StopOnSignalCallback", "StopRequested"]

@@ -11,6 +11,7 @@ import argparse
 import importlib
 import json
 import os
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -171,6 +172,42 @@ def enjoy(argv: Sequence[str] | None = None) -> MetaTestResult:
         return _enjoy(enjoy_parser().parse_args(argv))
 
 
+def find_model(args: argparse.Namespace, env_name: EnvironmentName) -> tuple[str, str]:
+    """
+    The model zip and run folder ``enjoy.py`` loads: rl_zoo3's choice (``--exp-id``, ``--load-best``, ...), except that
+    the latest run (``--exp-id 0``) is the latest one that holds the model asked for: a newer run folder without it (a
+    run stopped or killed before its first save) is skipped, and the message says which folder was used and why.
+
+    :param args: enjoy's arguments
+    :param env_name: the env
+    :return: the model's path and its run folder
+    """
+    choice = (args.load_best, args.load_checkpoint, args.load_last_checkpoint)
+    candidates = [args.exp_id]
+    if args.exp_id == 0:
+        pattern = re.compile(re.escape(str(env_name)) + r"_(\d+)")
+        root = os.path.join(args.folder, args.algo)
+        names = os.listdir(root) if os.path.isdir(root) else []
+        numbers = sorted((int(m.group(1)) for m in map(pattern.fullmatch, names) if m is not None), reverse=True)
+        candidates = numbers or [0]
+    skipped: list[str] = []
+    for number in candidates:
+        try:
+            _, model_path, log_path = get_model_path(number, args.folder, args.algo, env_name, *choice)
+        except (AssertionError, ValueError) as error:
+            if number == candidates[-1]:
+                raise UsageError(str(error) if not skipped else f"{error}; no newer run folder holds one either") from None
+            skipped.append(f"{env_name}_{number}")
+            continue
+        if skipped:
+            print(
+                f"Loading the latest run with a model, {log_path}: {', '.join(skipped)} "
+                f"{'holds' if len(skipped) == 1 else 'hold'} none (a run stopped before its first save; --exp-id chooses)"
+            )
+        return model_path, log_path
+    raise AssertionError("unreachable: the last candidate returns or raises")
+
+
 def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     """:func:`enjoy` after parsing; user errors raise :class:`~sb3_pearl.zoo.usage.UsageError`."""
     for module in args.gym_packages:
@@ -182,12 +219,7 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
         model_path, log_path = os.path.join(args.run, "model.zip"), args.run
         run_env_kwargs, run_eval_seed = _harness_run(args.run, args.algo, env_id)
     else:
-        try:
-            _, model_path, log_path = get_model_path(
-                args.exp_id, args.folder, args.algo, env_name, args.load_best, args.load_checkpoint, args.load_last_checkpoint
-            )
-        except (AssertionError, ValueError) as error:
-            raise UsageError(str(error)) from None
+        model_path, log_path = find_model(args, env_name)
     eval_seed = args.eval_seed if args.eval_seed is not None else (run_eval_seed if args.run else DEFAULT_EVAL_SEED)
     if args.num_threads > 0:
         th.set_num_threads(args.num_threads)
