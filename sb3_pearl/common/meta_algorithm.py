@@ -34,7 +34,7 @@ import os
 import pathlib
 import warnings
 from collections.abc import Mapping
-from typing import Any, ClassVar, TypeVar, cast
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
@@ -46,10 +46,9 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import unwrap_vec_normalize
 
 from sb3_pearl.common.adaptation import check_finite_observation, check_finite_transition
-from sb3_pearl.common.atomic import atomic_write, sb3_file_path
 from sb3_pearl.common.checks import check_task_counts
 from sb3_pearl.common.env_state import EnvStateError, capture_env_state, restore_env_state
-from sb3_pearl.common.persistence import loaded_model_data, read_model_data, saved_policy_name
+from sb3_pearl.common.persistence import loaded_model_data, read_model_data, saved_policy_name, write_sb3_file
 from sb3_pearl.common.seeding import capture_training_rng_state, restore_training_rng_state
 from sb3_pearl.common.tasks import (
     check_meta_env,
@@ -344,12 +343,9 @@ class MetaAlgorithm(BaseAlgorithm):
         """
         self._rng_state = capture_training_rng_state(self.env, self.action_space)  # saved with the data
         self._env_state = capture_env_state(self.env)  # the open episodes (DummyVecEnv only), for an exact resume
+        sb3_save = super().save
         try:
-            if isinstance(path, (str, os.PathLike)):
-                with atomic_write(sb3_file_path(path, "zip")) as file:
-                    super().save(cast(io.BufferedIOBase, file), exclude=exclude, include=include)
-            else:
-                super().save(path, exclude=exclude, include=include)
+            write_sb3_file(path, "zip", lambda file: sb3_save(file, exclude=exclude, include=include))
         finally:
             del self._env_state
 

@@ -259,11 +259,25 @@ def save_replay_buffer_file(
     assert buffer is not None, "The replay buffer is not defined"
     tag_buffer_tasks(buffer, tasks)
     compact = compact_buffer(buffer)  # only the filled rows are pickled
+    write_sb3_file(path, "pkl", lambda file: save_to_pkl(file, compact, verbose))
+
+
+def write_sb3_file(
+    path: str | pathlib.Path | io.BufferedIOBase, suffix: str, write: Callable[[io.BufferedIOBase], None]
+) -> None:
+    """
+    Write an SB3 file atomically: to a temporary file renamed into place (a kill or a full disk mid-save keeps the
+    previous file), with SB3's rule of appending ``.<suffix>`` to a path without one; an open file is written as it is.
+
+    :param path: the file, or an open binary file
+    :param suffix: ``"zip"`` (a model) or ``"pkl"`` (a replay buffer)
+    :param write: writes the content into the open file it is given (SB3's ``save`` or ``save_to_pkl``)
+    """
     if isinstance(path, (str, os.PathLike)):
-        with atomic_write(sb3_file_path(path, "pkl")) as file:
-            save_to_pkl(cast(io.BufferedIOBase, file), compact, verbose)
+        with atomic_write(sb3_file_path(path, suffix)) as file:
+            write(cast(io.BufferedIOBase, file))
     else:
-        save_to_pkl(path, compact, verbose)
+        write(path)
 
 
 COMPACT_CAPACITY_ATTR = "_sb3_pearl_capacity"  # set on a pickled SB3 ReplayBuffer holding only its filled rows
@@ -332,6 +346,7 @@ __all__ = [
     "resolve_model_path",
     "saved_arguments",
     "save_replay_buffer_file",
+    "write_sb3_file",
     "saved_policy_name",
     "tag_buffer_tasks",
 ]
