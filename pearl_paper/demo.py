@@ -43,7 +43,7 @@ from sb3_pearl.evaluation.held_out import run_meta_test
 from sb3_pearl.evaluation.meta_test import PAPER_KS, MetaTestResult, read_json
 from sb3_pearl.evaluation.statistics import summarize, wilson_interval
 from sb3_pearl.zoo import train
-from sb3_pearl.zoo.registry import register_algos
+from sb3_pearl.zoo.algos import register_algos
 from sb3_pearl.zoo.rl_zoo3_coupling import get_latest_run_id
 
 # The headline comparison, by label: the committed variant folders under results/ (every seed<N>/ with a result.json

@@ -19,9 +19,9 @@ import rl_zoo3.train
 import rl_zoo3.utils
 
 from sb3_pearl.zoo import MetaExperimentManager, rl_zoo3_coupling
+from sb3_pearl.zoo.algos import register_algos
 from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager
 from sb3_pearl.zoo.meta_testing import MetaTestExperimentManager
-from sb3_pearl.zoo.registry import register_algos
 
 ROOT = Path(__file__).resolve().parent.parent
 ExperimentManager = rl_zoo3.exp_manager.ExperimentManager

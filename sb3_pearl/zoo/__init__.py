@@ -2,7 +2,7 @@
 
 ``train.py`` and ``enjoy.py`` at the repository root are thin wrappers over this package:
 
-- :mod:`sb3_pearl.zoo.registry`: :func:`register_algos` (the algorithms in ``rl_zoo3.ALGOS``
+- :mod:`sb3_pearl.zoo.algos`: :func:`register_algos` (the algorithms in ``rl_zoo3.ALGOS``
   and the PEARL / PEARL+ Optuna samplers), :func:`constructor_kwargs`;
 - :mod:`sb3_pearl.zoo.experiment_manager`: :class:`MetaExperimentManager` (rl_zoo3's
   ``ExperimentManager`` with the project's hyperparameter files and the meta-test) and :func:`train`, put together
@@ -17,6 +17,13 @@ After ``pip install``, ``python -m sb3_pearl.train`` / ``python -m sb3_pearl.enj
 ``sb3-pearl-enjoy``) run them from anywhere; ``python -m sb3_pearl.zoo`` prints how.
 """
 
+from sb3_pearl.zoo.algos import (
+    constructor_kwargs,
+    convert_pearl_params,
+    register_algos,
+    sample_pearl_params,
+    sample_pearlplus_params,
+)
 from sb3_pearl.zoo.experiment_manager import (
     HYPERPARAMS_DIR,
     ZOO_META_TEST_DEFAULTS,
@@ -27,13 +34,6 @@ from sb3_pearl.zoo.experiment_manager import (
     default_config,
     train,
     write_meta_test,
-)
-from sb3_pearl.zoo.registry import (
-    constructor_kwargs,
-    convert_pearl_params,
-    register_algos,
-    sample_pearl_params,
-    sample_pearlplus_params,
 )
 from sb3_pearl.zoo.replay import enjoy, enjoy_parser
 from sb3_pearl.zoo.usage import UsageError

@@ -54,12 +54,12 @@ from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.held_out import check_meta_test_settings, model_test_tasks, write_meta_test
 from sb3_pearl.zoo import usage
+from sb3_pearl.zoo.algos import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags
 from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager, SetupInterrupted
 from sb3_pearl.zoo.meta_testing import SHORT_RUN_FRACTION, ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces, check_saved_model_family
-from sb3_pearl.zoo.registry import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, get_latest_run_id, run_zoo_train
 from sb3_pearl.zoo.safe_config import parse_dict_string
 from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, exit_on_usage_error

@@ -28,8 +28,8 @@ from sb3_pearl.common.threads import apply_default_num_threads, mark_num_threads
 from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult
 from sb3_pearl.evaluation.statistics import format_prior_posterior_table
+from sb3_pearl.zoo.algos import register_algos
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_family, check_model_spaces
-from sb3_pearl.zoo.registry import register_algos
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, create_test_env, get_model_path
 from sb3_pearl.zoo.safe_config import UnsafeConfigError, get_saved_hyperparams, load_run_yaml
 from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, check_env_id, exit_on_usage_error

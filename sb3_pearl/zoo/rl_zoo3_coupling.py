@@ -36,7 +36,7 @@ rl_zoo3's ``__init__``), and the constructor keywords the project passes or read
 :data:`EXPERIMENT_MANAGER_KWARGS`. What the overrides rely on beyond names: ``create_callbacks`` fills
 ``self.callbacks`` with a ``ProgressBarCallback`` (``-P``) and a ``CheckpointCallback`` (``--save-freq``), ``learn``
 closes ``self.callbacks[0]`` when training stops and treats ``KeyboardInterrupt`` as a stop, ``trial_id`` is tested
-for truth (``--trial-id 0`` needs :class:`~sb3_pearl.zoo.registry.OptunaTrialIndex`), and a ``policy_kwargs``
+for truth (``--trial-id 0`` needs :class:`~sb3_pearl.zoo.algos.OptunaTrialIndex`), and a ``policy_kwargs``
 string is ``eval``-ed with ``torch.nn`` as ``nn`` while a dict is kept (a zoo YAML's ``policy_kwargs`` are strings; a
 budget preset's arrive as a dict, converted by the project's ``_preprocess_hyperparams`` first, :mod:`sb3_pearl.zoo.budget`).
 

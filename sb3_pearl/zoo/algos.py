@@ -1,4 +1,5 @@
-"""The project's algorithms in ``rl_zoo3``: the registry, the constructor kwargs of each and the Optuna samplers.
+"""The project's algorithms in ``rl_zoo3`` (not a registry of its own: it puts :mod:`sb3_pearl.registry`'s algorithms in
+``rl_zoo3.ALGOS``), the constructor kwargs of each and the Optuna samplers.
 
 :func:`register_algos` puts ``pearl`` / ``pearlplus`` (and ``finetune`` / ``maml`` / ``oracle`` when
 :mod:`sb3_pearl` exports ``FineTune`` / ``MAML`` / ``Oracle``) in ``rl_zoo3.ALGOS`` and the PEARL / PEARL+
