@@ -60,6 +60,30 @@ def test_every_algorithm_uses_the_frame(name: str) -> None:
     assert model.stochastic_adaptation is (name == "maml")
 
 
+def test_each_algorithm_has_one_project_base() -> None:
+    """Every algorithm is its own class on the one base class MetaAlgorithm, then SB3's: no mixins in between."""
+    from sb3_pearl.finetune.discrete_sac import DiscreteSAC
+    from sb3_pearl.oracle import Oracle
+
+    def project_classes(cls: type) -> list[type]:
+        return [c for c in cls.__mro__ if c.__module__.startswith("sb3_pearl")]
+
+    assert project_classes(PEARL) == [PEARL, MetaAlgorithm]
+    assert project_classes(PEARLPlus) == [PEARLPlus, PEARL, MetaAlgorithm]
+    assert project_classes(FineTune) == [FineTune, MetaAlgorithm, DiscreteSAC]
+    assert project_classes(Oracle) == [Oracle, FineTune, MetaAlgorithm, DiscreteSAC]
+    assert project_classes(MAML) == [MAML, MetaAlgorithm]
+    # One _setup_learn in the project: the base's (the algorithms hook into it).
+    assert [
+        k.__name__
+        for c in (PEARLPlus, FineTune, Oracle, MAML)
+        for k in c.__mro__
+        if "_setup_learn" in vars(k) and k.__module__.startswith("sb3_pearl")
+    ] == ["MetaAlgorithm"] * 4
+    # MAML is on-policy: it keeps no replay buffer and offers no replay-buffer persistence.
+    assert not hasattr(MAML, "save_replay_buffer") and not hasattr(MAML, "load_replay_buffer")
+
+
 @pytest.mark.parametrize("name", sorted(CLASSES))
 def test_task_arguments_and_env_are_checked_by_the_frame(name: str) -> None:
     with pytest.raises(ValueError, match="n_train_tasks must be an integer >= 1"):

@@ -14,10 +14,9 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_pearl import PEARLPlus
-from sb3_pearl.pearl import returns as returns_module
-from sb3_pearl.pearl.collection import requeue_open_segments
+from sb3_pearl.pearl.collection import requeue_open_segments, start_piece
 from sb3_pearl.pearl.diagnostics.gradients import compute_gradient_conflict
-from sb3_pearl.pearl.returns import PendingPiece, cut_before_overwrite, finish_piece, piece_returns, start_piece
+from sb3_pearl.pearl.returns import PendingPiece, piece_returns
 from tests.conftest import make_discrete_env
 
 REWARDS, LOG_PROBS, GAMMA = np.array([1.0, 2.0, 3.0]), np.array([0.5, -1.0, 2.0]), 0.5
@@ -114,7 +113,7 @@ def test_collection_writes_the_returns_of_the_prior_rows(tiny_kwargs: dict[str, 
 def test_finish_piece_uses_the_recorded_log_probabilities(tiny_kwargs: dict[str, Any]) -> None:
     model = _mc_model(tiny_kwargs, prior_return_steps=4).learn(240)
     rl, log_probs = model.replay_buffer.rl, np.linspace(-3.0, 1.0, 10)
-    finish_piece(model, PendingPiece(task=2, rows=list(range(5, 15)), log_probs=list(log_probs)), terminated=False)
+    model._finish_piece(PendingPiece(task=2, rows=list(range(5, 15)), log_probs=list(log_probs)), terminated=False)
     rows = np.arange(5, 15)
     want = piece_returns(rl.rewards[2, rows, 0], log_probs, model.gamma, False, 4)
     np.testing.assert_allclose(rl.return_log_prob[2, rows, 0], want.log_prob_sum, rtol=1e-6)
@@ -171,15 +170,15 @@ def test_two_envs_on_one_task_never_write_a_return_on_an_overwritten_row(
         added[int(rl.pos[task])] = next(counter)  # row -> the index of the add that last wrote it
         add(task, *args, **kwargs)
 
-    finish = returns_module.finish_piece
+    finish = model._finish_piece
 
-    def checked_finish(model: PEARLPlus, piece: PendingPiece, terminated: bool) -> None:
+    def checked_finish(piece: PendingPiece, terminated: bool) -> None:
         order = [added[row] for row in piece.rows]  # when each row was last written
         finished.append(order == sorted(order))  # in collection order: no row rewritten since the piece recorded it
-        finish(model, piece, terminated)
+        finish(piece, terminated)
 
     monkeypatch.setattr(rl, "add", counting_add)
-    monkeypatch.setattr(returns_module, "finish_piece", checked_finish)
+    monkeypatch.setattr(model, "_finish_piece", checked_finish)
     model.learn(600)
     assert len(finished) > 20 and all(finished)
     ready, prior = rl.return_ready[0, :, 0] == 1.0, rl.prior_z[0, :, 0] == 1.0
@@ -195,7 +194,7 @@ def test_cut_before_overwrite_cuts_only_the_piece_holding_the_row(tiny_kwargs: d
     state.pieces[1].rows, state.pieces[1].log_probs = [8, 10], [0.3, 0.4]
     state.pieces[2].rows, state.pieces[2].log_probs = [7, 8], [0.5, 0.6]
     model.replay_buffer.rl.return_ready[1, 7:11] = 0.0
-    cut_before_overwrite(model, state, task=1, row=7)  # type: ignore[arg-type]
+    model._cut_before_overwrite(state, task=1, row=7)  # type: ignore[arg-type]
     assert state.pieces[0].rows == [] and state.pieces[0].task == 1  # cut, goes on as a new piece
     assert state.pieces[1].rows == [8, 10] and state.pieces[2].rows == [7, 8]  # another start row, another task
     assert list(model.replay_buffer.rl.return_ready[1, 7:11, 0]) == [1.0, 0.0, 1.0, 0.0]
@@ -205,7 +204,7 @@ def test_requeueing_forgets_the_pieces_so_the_number_of_envs_may_change(tiny_kwa
     model = _mc_model(tiny_kwargs, partial_iteration="carry").learn(250)
     state = model._open_iteration
     assert state is not None and state.pieces is not None
-    state.pieces = [None] * len(state.pieces)  # cut (finish_open_pieces) as learn() does before requeueing
+    state.pieces = [None] * len(state.pieces)  # cut (_finish_open_pieces) as learn() does before requeueing
     requeue_open_segments(state, n_envs=3)
     assert state.pieces is None and len(state.remaining) == 3
     start_piece(state, 2, task=0)  # the third env starts a piece: one slot per env again

@@ -1,7 +1,7 @@
-"""The frame every meta-RL algorithm of the project shares: task sets, meta-env and adaptation checks, training plan.
+"""The base class of every meta-RL algorithm of the project: task sets, checks, training plan, save and load.
 
-PEARL / PEARL+ (SB3's ``OffPolicyAlgorithm``), Fine-Tune (SAC) and MAML (``BaseAlgorithm``) train and adapt each in
-their own way; :class:`MetaAlgorithm` holds what they have in common, written once:
+PEARL / PEARL+ (on SB3's ``OffPolicyAlgorithm``), Fine-Tune (SAC) and MAML (``BaseAlgorithm``) train and adapt each
+in their own way; :class:`MetaAlgorithm` holds what they have in common, written once:
 
 - the task sets: ``n_train_tasks`` training and ``n_test_tasks`` held-out test tasks, drawn in one
   ``env.sample_tasks(n_train_tasks + n_test_tasks, seed)`` call with the model seed (so a seed gives every algorithm the
@@ -12,25 +12,44 @@ their own way; :class:`MetaAlgorithm` holds what they have in common, written on
   the model), a training task to learn on, and the transitions handed to the adaptation API's ``observe()``
   (:func:`check_observed_transition`);
 - :attr:`MetaAlgorithm.stochastic_adaptation`: how the meta-test protocol rolls the model out;
-- :meth:`MetaAlgorithm.training_plan`: what ``learn(total_timesteps)`` will still collect and train.
+- :meth:`MetaAlgorithm.training_plan`: what ``learn(total_timesteps)`` will still collect and train;
+- saving and loading (:mod:`sb3_pearl.common.persistence`): an atomic ``save``, a ``load`` that checks the file and
+  the hyperparameters before SB3 builds anything, the RNG streams and the envs' open episodes saved with the model
+  (exact resume). The off-policy algorithms save their replay buffers with
+  :func:`~sb3_pearl.common.persistence.save_replay_buffer_file` (atomic, tagged with the training tasks).
 
-An algorithm mixes :class:`MetaAlgorithm` in before its SB3 base class and calls, in this order:
+An algorithm puts :class:`MetaAlgorithm` first among its bases, before its SB3 algorithm class (``PEARL(MetaAlgorithm,
+OffPolicyAlgorithm)``, ``FineTune(MetaAlgorithm, DiscreteSAC)``, ``MAML(MetaAlgorithm)``), and calls, in this order:
 :func:`check_task_arguments` with its other argument checks, ``super().__init__(...)``,
 :meth:`~MetaAlgorithm._init_meta_algorithm`, and :meth:`~MetaAlgorithm._setup_tasks` in its ``_setup_model``.
+
+Trust model, as in SB3: a model zip holds pickled objects and a replay buffer is a pickle. Loading
+one runs whatever code its author put in it: load only files you trust.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar
+import io
+import os
+import pathlib
+import warnings
+from collections.abc import Mapping
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
+import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import unwrap_vec_normalize
 
 from sb3_pearl.common.adaptation import check_finite_observation, check_finite_transition
 from sb3_pearl.common.checks import check_task_counts
+from sb3_pearl.common.env_state import EnvStateError, capture_env_state, restore_env_state
+from sb3_pearl.common.persistence import loaded_model_data, read_model_data, saved_policy_name, write_sb3_file
+from sb3_pearl.common.seeding import capture_training_rng_state, restore_training_rng_state
 from sb3_pearl.common.tasks import (
     check_meta_env,
     env_task_family,
@@ -40,17 +59,13 @@ from sb3_pearl.common.tasks import (
     vec_env_task_error,
 )
 from sb3_pearl.common.threads import apply_default_num_threads
+from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
 
-if TYPE_CHECKING:
-    from stable_baselines3.common.base_class import BaseAlgorithm
-    from stable_baselines3.common.policies import BasePolicy
+SelfMetaAlgorithm = TypeVar("SelfMetaAlgorithm", bound="MetaAlgorithm")
 
-    from sb3_pearl.common.type_aliases import TrainingPlan
-
-    _AlgorithmBase = BaseAlgorithm
-else:
-    _AlgorithmBase = object
+# The classes that declare the data keys every zip of theirs holds (filled by MetaAlgorithm.__init_subclass__).
+_SIGNATURES: dict[str, type[MetaAlgorithm]] = {}
 
 
 def check_task_arguments(
@@ -107,13 +122,14 @@ def check_observed_transition(
     return obs_arr.reshape(shape), next_obs_arr.reshape(shape)
 
 
-class MetaAlgorithm(_AlgorithmBase):
+class MetaAlgorithm(BaseAlgorithm):
     """
-    The frame of a meta-RL algorithm (module docstring): its task sets, checks and training plan.
+    The base of a meta-RL algorithm (module docstring): its task sets, checks, training plan, save and load.
 
-    A mixin: put it before the SB3 base class (and after the adaptation mixins). Its attributes
-    (:attr:`n_train_tasks`, :attr:`n_test_tasks`, :attr:`train_tasks`, :attr:`test_tasks`, :attr:`task_family`) are
-    saved with the model.
+    Put it first among the bases, before the SB3 algorithm class. Its attributes (:attr:`n_train_tasks`,
+    :attr:`n_test_tasks`, :attr:`train_tasks`, :attr:`test_tasks`, :attr:`task_family`) are saved with the model. A
+    class lists in :attr:`saved_data_keys` the parameters every zip of it holds; ``load`` refuses a zip without them and
+    names the class that wrote it when it is one of the project's.
     """
 
     # Read by the meta-test protocol (sb3_pearl.evaluation.meta_test): True makes it roll the model out with its
@@ -122,6 +138,8 @@ class MetaAlgorithm(_AlgorithmBase):
     stochastic_adaptation: ClassVar[bool] = False
     # The algorithm's networks take flat observations only (a Box of shape (obs_dim,)): checked with the env.
     requires_flat_observations: ClassVar[bool] = False
+    # Parameters every zip of the class holds (load() refuses a zip without them, e.g. a SAC one).
+    saved_data_keys: ClassVar[tuple[str, ...]] = ()
 
     n_train_tasks: int
     n_test_tasks: int
@@ -131,6 +149,14 @@ class MetaAlgorithm(_AlgorithmBase):
     # before it was recorded): load(env=...) and set_env refuse an env of another family.
     task_family: str | None
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if cls.__dict__.get("saved_data_keys"):
+            _SIGNATURES[cls.__name__] = cls
+
+    # ------------------------------------------------------------------------------------------
+    # Task sets and env checks
+    # ------------------------------------------------------------------------------------------
     def _init_meta_algorithm(
         self,
         n_train_tasks: int,
@@ -224,13 +250,43 @@ class MetaAlgorithm(_AlgorithmBase):
         tb_log_name: str = "run",
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
+        """
+        SB3's ``_setup_learn`` after the checks of the budget and the training tasks; around SB3's reset of the envs
+        (a new run, or a model whose envs' saved state was not restored) the algorithm's
+        :meth:`_before_env_reset` and :meth:`_after_env_reset`; the first ``learn()`` after ``load()`` then continues
+        the saved RNG streams.
+
+        :param total_timesteps: the ``learn`` budget
+        :param callback: SB3 callback(s)
+        :param reset_num_timesteps: restart the step counter
+        :param tb_log_name: TensorBoard run name
+        :param progress_bar: show a progress bar
+        :return: the budget and the callback, as SB3's
+        """
         if total_timesteps < 0:
             raise ValueError(
                 f"{type(self).__name__}.learn(): total_timesteps must be >= 0 (env steps to train on), got {total_timesteps}"
             )
         self._check_train_tasks()
         apply_default_num_threads(self.policy)  # the fastest count for these networks, unless the user chose one
-        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        env_reset = reset_num_timesteps or self._last_obs is None  # SB3's condition for resetting the envs
+        if env_reset:
+            self._before_env_reset()
+        result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        # First learn() after load(): continue the saved RNG streams (after SB3's env reset, when the envs' saved state
+        # was not restored, reseeded them).
+        state = self.__dict__.pop("_rng_to_restore", None)
+        if state is not None:
+            restore_training_rng_state(state, self.env, self.action_space)
+        if env_reset:
+            self._after_env_reset()
+        return result
+
+    def _before_env_reset(self) -> None:
+        """Called by ``learn()`` before SB3 resets the envs (see :meth:`_setup_learn`); nothing here."""
+
+    def _after_env_reset(self) -> None:
+        """Called by ``learn()`` after SB3 reset the envs (and the saved RNG streams were restored); nothing here."""
 
     def predict(
         self,
@@ -269,5 +325,180 @@ class MetaAlgorithm(_AlgorithmBase):
         """
         return None
 
+    # ------------------------------------------------------------------------------------------
+    # Save / load
+    # ------------------------------------------------------------------------------------------
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Any = None,
+        include: Any = None,
+    ) -> None:
+        """
+        SB3's ``save``, written to a temporary file and renamed into place (a kill mid-save keeps the old file).
 
-__all__ = ["MetaAlgorithm", "check_observed_transition", "check_task_arguments"]
+        :param path: the zip (``.zip`` is appended when the path has no suffix, as in SB3) or an open binary file
+        :param exclude: parameters to exclude in addition to the default ones
+        :param include: parameters to include although excluded by default
+        """
+        self._rng_state = capture_training_rng_state(self.env, self.action_space)  # saved with the data
+        self._env_state = capture_env_state(self.env)  # the open episodes (DummyVecEnv only), for an exact resume
+        sb3_save = super().save
+        try:
+            write_sb3_file(path, "zip", lambda file: sb3_save(file, exclude=exclude, include=include))
+        finally:
+            del self._env_state
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "_rng_to_restore"]
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfMetaAlgorithm],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        restore_env: bool = True,
+        strict_env: bool = False,
+        **kwargs: Any,
+    ) -> SelfMetaAlgorithm:
+        """
+        SB3's ``load``, after checking that the file is a complete zip of this class (clear errors otherwise).
+
+        A zip saved from a DummyVecEnv holds its envs' mid-episode state (:mod:`sb3_pearl.common.env_state`) and
+        every RNG state of the run: with ``restore_env`` and an ``env`` of the same structure, the envs continue
+        the saved episodes instead of being reset, and ``learn(..., reset_num_timesteps=False)`` continues the
+        run bit for bit (exact resume).
+
+        :param path: the model zip
+        :param env: the env to run the model on
+        :param device: torch device
+        :param custom_objects: objects replacing saved ones (SB3)
+        :param print_system_info: print the system info of the save
+        :param force_reset: reset the env before the next ``learn`` (unless its saved state is restored)
+        :param restore_env: restore the envs' saved state into ``env`` when the zip holds one and ``env`` has the same
+            structure (same number of envs, same wrappers); otherwise (or False) the env is reset, as in SB3
+        :param strict_env: raise :class:`~sb3_pearl.common.env_state.EnvStateError` when the saved env state cannot be
+            read here (another MuJoCo release wrote it); False: warn and reset the env (the model, its RNG streams and
+            everything else load whole: what evaluation needs). The harness resumes strictly (exact resume)
+        :param kwargs: attributes to set on the loaded model
+        :return: the model
+        :raises ValueError: the file is not a complete zip of this class, or a hyperparameter (saved, in
+            ``custom_objects`` or in ``kwargs``) fails the constructor's checks
+        """
+        if isinstance(path, (str, os.PathLike)):
+            data = read_model_data(path)
+            cls._check_saved_data(data, str(path))
+            # Before SB3 builds anything from them: a bad value fails here with the constructor's message.
+            cls._check_loaded_arguments({**loaded_model_data(data, custom_objects), **kwargs}, str(path))
+        model = super().load(  # type: ignore[misc]
+            path,
+            env=env,
+            device=device,
+            custom_objects=custom_objects,
+            print_system_info=print_system_info,
+            force_reset=force_reset and not (restore_env and env is not None),
+            **kwargs,
+        )
+        if not isinstance(path, (str, os.PathLike)):  # a stream is read once, by SB3: its model is checked instead
+            cls._check_loaded_arguments(vars(model), str(getattr(path, "name", "the model file")))
+        env_state = model.__dict__.pop("_env_state", None)
+        if restore_env and env is not None:
+            resumable = env_state is not None and model._last_obs is not None
+            try:
+                restored = resumable and restore_env_state(model.env, env_state)
+            except EnvStateError as error:
+                if strict_env:
+                    raise EnvStateError(f"{path}: {error}") from error
+                warnings.warn(f"{path}: {error}. The envs start new episodes instead.", stacklevel=2)
+                restored = False
+            if not restored:
+                model._last_obs = None  # nothing to continue: SB3's reset before the next learn()
+        state = getattr(model, "_rng_state", None)
+        if state is not None:  # the saved streams, not SB3's reseed; the envs' at the first learn()
+            restore_training_rng_state(state, None, model.action_space)
+            model.__dict__["_rng_to_restore"] = state
+        return model
+
+    @classmethod
+    def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
+        """
+        Run the constructor's argument checks on a model's attributes (each class checks its own arguments, reusing
+        the checks its constructor runs; :func:`saved_arguments` maps attributes to arguments). Nothing here.
+
+        :param saved: the attributes by name: a zip's data with ``load``'s replacements, or ``vars(model)``
+        """
+
+    @classmethod
+    def _check_loaded_arguments(cls, saved: Mapping[str, Any], source: str) -> None:
+        """
+        :meth:`_check_saved_arguments` with the file named in the error.
+
+        :param saved: the attributes by name
+        :param source: the model file, for the message
+        """
+        try:
+            cls._check_saved_arguments(saved)
+        except ValueError as error:
+            raise ValueError(
+                f"{source}: {error} ({cls.__name__}.load checks the hyperparameters as the constructor does: the "
+                "value is the zip's, or the one given in custom_objects or as a load() keyword)"
+            ) from None
+
+    @classmethod
+    def _variant_of(cls, data: dict[str, Any]) -> str | None:
+        """
+        What a zip holds when it is this class's and its parent cannot load it (a subclass that adds what its parent
+        would drop says so here: PEARLPlus, for a zip with a prior term); None: its parent loads the zip too. Asked
+        only of the classes that define it.
+
+        :param data: a zip's ``data`` entry
+        :return: the model the zip holds, for the message (e.g. ``"a PEARL+ model (prior_coef=0.1, ...)"``), or None
+        """
+        return None
+
+    @staticmethod
+    def _variant_writer(data: dict[str, Any]) -> tuple[type[MetaAlgorithm], str] | None:
+        """The most derived algorithm class whose :meth:`_variant_of` claims a zip's data, with its claim (None: none)."""
+        found: tuple[type[MetaAlgorithm], str] | None = None
+        pending: list[type[MetaAlgorithm]] = MetaAlgorithm.__subclasses__()
+        while pending:
+            algorithm = pending.pop()
+            claim = algorithm._variant_of(data) if "_variant_of" in vars(algorithm) else None
+            if claim is not None and (found is None or issubclass(algorithm, found[0])):
+                found = (algorithm, claim)
+            pending.extend(algorithm.__subclasses__())
+        return found
+
+    @classmethod
+    def _check_saved_data(cls, data: dict[str, Any], path: str) -> None:
+        """
+        Raise a clear error unless a zip's data fits this class: it holds :attr:`saved_data_keys` (else the message
+        names the class that wrote it), and no subclass that this class is not claims it (:meth:`_variant_of`).
+
+        :param data: the zip's ``data`` entry (:func:`read_model_data`)
+        :param path: the zip, for the message
+        """
+        missing = [key for key in cls.saved_data_keys if key not in data]
+        variant = cls._variant_writer(data)
+        if not missing:
+            if variant is not None and not issubclass(cls, variant[0]):
+                writer, held = variant[0].__name__, variant[1]
+                raise ValueError(
+                    f"{path} holds {held}: load it with {writer}.load; {cls.__name__}.load would drop what {writer} adds"
+                )
+            return
+        writers = [writer for writer in _SIGNATURES.values() if all(key in data for key in writer.saved_data_keys)]
+        if writers:
+            name = variant[0].__name__ if variant is not None and issubclass(variant[0], writers[-1]) else writers[-1].__name__
+            raise ValueError(f"{path} holds a {name} model, not a {cls.__name__} one: load it with {name}.load")
+        raise ValueError(
+            f"{path} is not a {cls.__name__} model: it lacks {missing} and its policy is {saved_policy_name(data)}. "
+            "Load it with the algorithm that saved it (e.g. stable_baselines3.SAC.load for a SAC zip)"
+        )
+
+
+__all__ = ["MetaAlgorithm", "SelfMetaAlgorithm", "check_observed_transition", "check_task_arguments"]

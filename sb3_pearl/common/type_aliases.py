@@ -34,6 +34,14 @@ class MetaReplaySamples(NamedTuple):
     returns: ReturnTargets | None = None  # the prior-z rows' Monte-Carlo returns (sample(..., returns=True))
 
 
+class PosteriorSample(NamedTuple):
+    """q(z | c) for T tasks and one z per task."""
+
+    mean: th.Tensor  # (T, latent_dim)
+    var: th.Tensor  # (T, latent_dim)
+    z: th.Tensor  # (T, latent_dim): a reparameterised sample (carries encoder gradients), or the mean
+
+
 class PEARLLosses(NamedTuple):
     """The losses of one PEARL/PEARL+ gradient step (Algorithm 1), each a scalar tensor."""
 

@@ -10,14 +10,16 @@ after :meth:`FineTune.reset_adaptation`).
 from __future__ import annotations
 
 import copy
+import io
 import math
+import pathlib
+import pickle
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, TrainFrequencyUnit
@@ -28,7 +30,14 @@ from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.checks import check_int, check_real
 from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
-from sb3_pearl.common.persistence import ReplayBufferSaveLoadMixin, saved_arguments
+from sb3_pearl.common.persistence import (
+    IncompleteReplayBufferError,
+    check_buffer_tasks,
+    expand_buffer,
+    refuse_model_zip,
+    save_replay_buffer_file,
+    saved_arguments,
+)
 from sb3_pearl.common.tasks import env_time_limit, set_vec_env_task
 from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
@@ -63,7 +72,7 @@ def check_finetune_arguments(arguments: Mapping[str, Any]) -> None:
         check_int("max_episode_steps", args["max_episode_steps"], 1, hint="or None: the env's registered time limit")
 
 
-class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
+class FineTune(MetaAlgorithm, DiscreteSAC):
     """
     Fine-Tune baseline: SAC trained on the mixture of the training tasks, fine-tuned on a new task.
 
@@ -176,6 +185,35 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
         check_sac_arguments(saved_arguments(DiscreteSAC.__init__, saved))
         check_finetune_arguments(saved_arguments(FineTune.__init__, saved))
 
+    def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
+        """
+        SB3's ``save_replay_buffer``, atomic, with the training tasks recorded in the buffer
+        (:func:`~sb3_pearl.common.persistence.save_replay_buffer_file`).
+
+        :param path: the pickle (``.pkl`` is appended when the path has no suffix, as in SB3) or an open binary file
+        """
+        save_replay_buffer_file(self.replay_buffer, self.train_tasks, path, self.verbose)
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """
+        SB3's ``load_replay_buffer``, refusing a model zip, a truncated pickle or a buffer collected on other training tasks.
+
+        :param path: the pickle
+        :param truncate_last_traj: SB3's option for ``HerReplayBuffer``
+        """
+        refuse_model_zip(path, type(self).__name__)
+        previous = self.replay_buffer
+        try:
+            super().load_replay_buffer(path, truncate_last_traj)
+        except (EOFError, pickle.UnpicklingError) as error:
+            raise IncompleteReplayBufferError(path, error) from None
+        expand_buffer(self.replay_buffer)
+        try:
+            check_buffer_tasks(self.replay_buffer, self.train_tasks, path)
+        except ValueError:
+            self.replay_buffer = previous
+            raise
+
     # ------------------------------------------------------------------------------------------
     # Meta-training on the mixture of the training tasks
     # ------------------------------------------------------------------------------------------
@@ -186,26 +224,15 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
             task = self.train_tasks[np.random.randint(len(self.train_tasks))]
             set_vec_env_task(self.env, task, [int(index)])
 
-    def _setup_learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        reset_num_timesteps: bool = True,
-        tb_log_name: str = "run",
-        progress_bar: bool = False,
-    ) -> tuple[int, BaseCallback]:
-        # Learning always continues from the pretrained policy, never from a fine-tuned copy.
-        self.reset_adaptation()
-        self._check_train_tasks()  # before the first episodes' tasks are drawn from them
+    def _before_env_reset(self) -> None:
+        """The tasks of the first episodes of a ``learn()`` (SB3's reset of the envs applies them)."""
         assert self.env is not None
-        will_reset = reset_num_timesteps or self._last_obs is None
-        env_indices = range(self.env.num_envs)
-        if will_reset:  # the tasks of the first episodes (the reset below applies them)
-            self._set_random_train_tasks(env_indices)
-        result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
-        if will_reset:  # set_task is sticky until the next reset: keep one task pending per env
-            self._set_random_train_tasks(env_indices)
-        return result
+        self._set_random_train_tasks(range(self.env.num_envs))
+
+    def _after_env_reset(self) -> None:
+        """``set_task`` is sticky until the next reset: keep one task pending per env."""
+        assert self.env is not None
+        self._set_random_train_tasks(range(self.env.num_envs))
 
     def _store_transition(
         self,
@@ -251,6 +278,7 @@ class FineTune(MetaAlgorithm, ReplayBufferSaveLoadMixin, DiscreteSAC):
         :param reset_num_timesteps: restart the step counter
         :param progress_bar: show a progress bar
         """
+        self.reset_adaptation()  # learning always continues from the pretrained policy, never from a fine-tuned copy
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,

@@ -27,7 +27,6 @@ from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
@@ -36,7 +35,7 @@ from torch.nn.utils import parameters_to_vector
 
 from sb3_pearl.common.checks import check_arch, check_gamma, check_int, check_real
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
-from sb3_pearl.common.persistence import SaveLoadMixin, saved_arguments
+from sb3_pearl.common.persistence import saved_arguments
 from sb3_pearl.common.tasks import env_time_limit
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.advantages import compute_advantages, split_task_samples
@@ -76,7 +75,7 @@ def check_maml_arguments(arguments: Mapping[str, Any]) -> None:
     check_arch("policy_kwargs['net_arch']", (args["policy_kwargs"] or {}).get("net_arch"))
 
 
-class MAML(MetaAlgorithm, SaveLoadMixin, BaseAlgorithm):
+class MAML(MetaAlgorithm):
     """
     MAML-TRPO: Model-Agnostic Meta-Learning with a TRPO outer loop (Finn et al. 2017).
     Paper: arXiv:1703.03400 (https://arxiv.org/abs/1703.03400)

@@ -34,8 +34,7 @@ from sb3_pearl.common.soft_actor_critic import (
     q_of_policy,
     soft_value,
 )
-from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses
-from sb3_pearl.pearl.adaptation import PosteriorSample
+from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, PosteriorSample
 from sb3_pearl.pearl.policies import PEARLPolicy
 
 
@@ -67,7 +66,7 @@ def compute_losses(
         target (None for PEARL and ``prior_critic="shared"``)
     :param replay: RL batch, tensors of leading shape (T, B)
     :param posterior: q(z | c) of each task's context and one z per task drawn from it, carrying the encoder's
-        gradients (:meth:`~sb3_pearl.pearl.adaptation.PosteriorAdaptationMixin.sample_posterior`), each (T, latent_dim)
+        gradients (:meth:`~sb3_pearl.pearl.pearl.PEARL.sample_posterior`), each (T, latent_dim)
     :param z0: prior latents (T, latent_dim), one per task
     :param ent_coef: the entropy coefficient of this step (detached)
     :param log_ent_coef: the learned log entropy coefficient (its loss is computed), or None for a fixed one

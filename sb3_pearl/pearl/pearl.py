@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import math
 import pathlib
+from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
@@ -20,40 +21,30 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.callbacks import gradient_step_event
-from sb3_pearl.common.divergence import NonFiniteUpdateGuard
-from sb3_pearl.common.meta_algorithm import MetaAlgorithm
+from sb3_pearl.common.divergence import NonFiniteUpdateGuard, check_env_step, check_finite_actions
+from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition
 from sb3_pearl.common.networks import polyak_update_foreach
-from sb3_pearl.common.persistence import (
-    ReplayBufferSaveLoadMixin,
-    check_buffer_tasks,
-    read_replay_buffer,
-    saved_arguments,
-)
+from sb3_pearl.common.persistence import check_buffer_tasks, read_replay_buffer, save_replay_buffer_file, saved_arguments
 from sb3_pearl.common.precision import resolve_bf16
-from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, TrainingPlan
+from sb3_pearl.common.tasks import set_vec_env_task
+from sb3_pearl.common.type_aliases import MetaReplaySamples, PEARLLosses, PosteriorSample, TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
-from sb3_pearl.pearl.adaptation import PosteriorAdaptationMixin
 from sb3_pearl.pearl.arguments import check_pearl_arguments
-from sb3_pearl.pearl.collection import (
-    OpenIteration,
-    collect_iteration,
-    plan_iteration,
-    plan_training,
-    requeue_open_segments,
-    start_iteration,
-)
+from sb3_pearl.pearl.collection import OpenIteration, Segment, requeue_open_segments, start_piece
 from sb3_pearl.pearl.gradient_conflict import record_gradient_conflict
 from sb3_pearl.pearl.losses import LossSettings, compute_losses
 from sb3_pearl.pearl.policies import PEARLPolicy
-from sb3_pearl.pearl.returns import finish_open_pieces
+from sb3_pearl.pearl.returns import PendingPiece, piece_returns
 
 SelfPEARL = TypeVar("SelfPEARL", bound="PEARL")
 
 
-class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, OffPolicyAlgorithm):
+class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
     """
     PEARL (Rakelly et al. 2019, arXiv:1903.08254): off-policy meta-RL with probabilistic context variables.
 
@@ -68,7 +59,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
     reference implementation and SB3's SAC (which compute the actor loss after the critic step), the
     critics as they were before this step's update (docs/pearl.md states the effect).
 
-    Data collection (``learn``) follows the reference schedule (:mod:`sb3_pearl.pearl.collection`):
+    Data collection (``learn``, :meth:`collect_iteration`) follows the reference schedule (:mod:`sb3_pearl.pearl.collection`):
     prior-z and posterior-z trajectories per visited task, then ``num_train_steps_per_itr`` gradient
     steps. A ``learn`` budget ending inside an iteration trains the collected share of it, or, with
     ``partial_iteration="carry"``, keeps it open for the next ``learn``.
@@ -241,6 +232,11 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             self._setup_model()
 
     @property
+    def latent_dim(self) -> int:
+        """Size of z."""
+        return self.policy.latent_dim
+
+    @property
     def uses_prior_term(self) -> bool:
         """Whether the actor is also trained on prior latents z0 (PEARL+ with ``prior_coef > 0``)."""
         return self.prior_coef > 0
@@ -317,6 +313,18 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             prior_conservative_weight=self.prior_conservative_weight,
             target_entropy=self.target_entropy,
         )
+
+    def sample_posterior(self, context: th.Tensor, sample: bool = True) -> PosteriorSample:
+        """
+        Task inference, the one place where a context becomes a posterior and a z (losses, collection, adaptation).
+
+        :param context: context transitions (T, N, context_dim)
+        :param sample: draw z from q(z | c) with the reparameterisation trick, or take its mean
+        :return: posterior mean and variance and z, each (T, latent_dim)
+        """
+        mean, var = self.policy.encoder.posterior(context)
+        z = mean + var.sqrt() * th.randn_like(mean) if sample else mean
+        return PosteriorSample(mean, var, z)
 
     def _compute_losses(self, replay: MetaReplaySamples, context: th.Tensor, z0: th.Tensor) -> PEARLLosses:
         """
@@ -424,11 +432,14 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             if steps_done > 0 and self._learn_callback is not None and not gradient_step_event(self._learn_callback):
                 break  # a stop was asked for: the state here is one a saved model resumes exactly
             steps_done += 1
+            # Sample meta_batch training tasks: each task's RL batch b, context c and one prior latent z0.
             replay, context, z0 = self._sample_meta_batch(batch_size)
+            # Infer z ~ q(z | c) from each context, then the losses: critic, KL, actor and entropy (and the prior terms).
             with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self._bf16_enabled):
                 losses = self._compute_losses(replay, context, z0)
             if self.grad_conflict_log_freq > 0 and self._n_updates % self.grad_conflict_log_freq == 0:
-                record_gradient_conflict(self, losses, logs)  # two extra actor-only backward passes
+                record_gradient_conflict(self.actor, self.prior_coef, losses, logs)  # two extra actor-only backward passes
+            # The updates: one backward pass serves every optimizer (the losses touch disjoint parameters).
             for optimizer in optimizers:
                 optimizer.zero_grad(set_to_none=True)
             total_loss = self._total_loss(losses)
@@ -441,7 +452,7 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             self._update_guard.ok()
             for optimizer in optimizers:
                 optimizer.step()
-            polyak_update_foreach(critic_params, critic_target_params, self.tau)
+            polyak_update_foreach(critic_params, critic_target_params, self.tau)  # the target critics follow
             self._count_gradient_step()  # counted once the step's work is done: a save between steps sees it whole
             if self.gradient_step_callback is not None:
                 self.gradient_step_callback()
@@ -507,13 +518,13 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             if self._pending_gradient_steps == 0:  # else: an iteration whose gradient steps a stop interrupted
                 state = self._open_iteration  # an iteration a previous learn() left open ("carry"), or a new one
                 if state is None:
-                    callback.on_rollout_start()  # before plan_iteration's draws: a checkpoint saved here resumes exactly
-                    state = start_iteration(self, plan_iteration(self))
-                continue_training = collect_iteration(self, self.env, callback, state)
+                    callback.on_rollout_start()  # before _plan_iteration's draws: a checkpoint saved here resumes exactly
+                    state = self._start_iteration(self._plan_iteration())
+                continue_training = self.collect_iteration(self.env, callback, state)
                 if not state.finished and (self.partial_iteration == "carry" or not continue_training):
                     self._open_iteration = state  # finished by the next learn(); nothing trained on it yet
                     return
-                finish_open_pieces(self, state)  # trained now: a trajectory the budget ended inside is cut here
+                self._finish_open_pieces(state)  # trained now: a trajectory the budget ended inside is cut here
                 self._open_iteration = None
                 if not continue_training:
                     return
@@ -529,22 +540,300 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
             if log_interval and self.n_iterations % log_interval == 0:
                 self.dump_logs()
 
-    def _setup_learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        reset_num_timesteps: bool = True,
-        tb_log_name: str = "run",
-        progress_bar: bool = False,
-    ) -> tuple[int, BaseCallback]:
-        if self._open_iteration is not None and (reset_num_timesteps or self._last_obs is None):
-            finish_open_pieces(self, self._open_iteration)  # the envs are reset: their trajectories are cut
+    def _before_env_reset(self) -> None:
+        """``learn()`` resets the envs: an iteration left open has its trajectories cut and its segments requeued."""
+        if self._open_iteration is not None:
+            self._finish_open_pieces(self._open_iteration)  # the envs are reset: their trajectories are cut
             requeue_open_segments(self._open_iteration, self.n_envs)  # the envs are reset: their segments start anew
-        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def training_plan(self, total_timesteps: int) -> TrainingPlan:
-        """What ``learn(total_timesteps)`` will still collect and train (:func:`~sb3_pearl.pearl.collection.plan_training`)."""
-        return plan_training(self, total_timesteps)
+        """
+        What ``learn(total_timesteps)`` will still do: iteration 0's initial data (if some training task has none yet),
+        then full iterations and maybe a partial last one, whose gradient steps are scaled as ``learn`` scales them.
+
+        :param total_timesteps: the ``learn`` budget, counted from 0 (a resumed run plans what is left)
+        :return: the plan
+        """
+        remaining = max(total_timesteps - self.num_timesteps, 0)
+        steps = self.num_train_steps_per_itr
+        chunks: list[tuple[int, int]] = []  # (collected, planned) per iteration
+        open_iteration = self._open_iteration
+        if open_iteration is not None and remaining > 0:  # first, the iteration a previous learn() left open
+            rest = min(open_iteration.planned - open_iteration.collected, remaining)
+            chunks.append((open_iteration.collected + rest, open_iteration.planned))
+            remaining -= rest
+        without_data = int(np.count_nonzero(self.replay_buffer.rl.size == 0)) if self.num_initial_steps > 0 else 0
+        if open_iteration is None and without_data > 0 and remaining > 0:
+            planned = self.num_initial_steps * without_data
+            chunks.append((min(planned, remaining), planned))
+            remaining -= chunks[-1][0]
+        per_iteration = self.num_tasks_sample * (
+            self.num_steps_prior + self.num_steps_posterior + self.num_extra_rl_steps_posterior
+        )
+        full, rest = divmod(remaining, per_iteration) if per_iteration > 0 else (0, 0)
+        chunks += [(per_iteration, per_iteration)] * full + ([(rest, per_iteration)] if rest > 0 else [])
+        carry = self.partial_iteration == "carry"  # an unfinished last iteration is trained by a later learn()
+        updates = [0 if carry and done < planned else math.ceil(steps * done / planned) for done, planned in chunks]
+        pending = int(self._pending_gradient_steps)  # an iteration whose gradient steps a stop interrupted: trained first
+        if pending > 0:
+            updates.insert(0, pending)
+        initial = chunks[0][0] if chunks and open_iteration is None and without_data > 0 and pending == 0 else 0
+        note = ""
+        if initial:
+            per_task, planned = self.num_initial_steps, self.num_initial_steps * without_data
+            note = f"iteration 0: {per_task:,} steps with z from the prior per training task, {without_data} tasks"
+            if initial < planned:  # the budget ends inside iteration 0: say how much of it runs
+                note += f"; this run's {initial:,} steps reach {math.ceil(initial / per_task)} of them"
+            else:
+                note += f" ({planned:,} in all)"
+        return TrainingPlan(
+            env_steps=max(total_timesteps - self.num_timesteps, 0),
+            gradient_steps=sum(updates),
+            initial_steps=initial,
+            first_updates=updates[0] if updates else 0,
+            note=note,
+        )
+
+    # ------------------------------------------------------------------------------------------
+    # Data collection: Algorithm 1's inner loop over tasks (the iteration's state: sb3_pearl.pearl.collection)
+    # ------------------------------------------------------------------------------------------
+    def _plan_iteration(self) -> list[list[Segment]]:
+        """The segments of the next iteration, one program (list of segments) per visited task."""
+        without_data = np.flatnonzero(self.replay_buffer.rl.size == 0)
+        if len(without_data) > 0 and self.num_initial_steps > 0:  # iteration 0 (or an interrupted one): initial prior data
+            initial = self.num_initial_steps
+            return [
+                [Segment(task=int(t), n_steps=initial, z_source="prior", add_to_context=True, clear_context=True)]
+                for t in without_data
+            ]
+        programs = []
+        for task in np.random.randint(len(self.train_tasks), size=self.num_tasks_sample):
+            t = int(task)
+            program = [
+                Segment(task=t, n_steps=self.num_steps_prior, z_source="prior", add_to_context=True, clear_context=True),
+                Segment(t, n_steps=self.num_steps_posterior, z_source="posterior", add_to_context=True, clear_context=False),
+                Segment(
+                    t,
+                    n_steps=self.num_extra_rl_steps_posterior,
+                    z_source="posterior",
+                    add_to_context=False,
+                    clear_context=False,
+                ),
+            ]
+            if self.num_steps_prior == 0:  # the context buffer is still cleared when the task is visited
+                program.insert(0, Segment(t, n_steps=0, z_source="prior", add_to_context=False, clear_context=True))
+            programs.append(program)
+        return programs
+
+    def _start_iteration(self, programs: list[list[Segment]]) -> OpenIteration:
+        """The collection state of a new iteration made of ``programs`` (:meth:`_plan_iteration`)."""
+        n_envs = self.n_envs
+        return OpenIteration(
+            queue=deque(deque(program) for program in programs),
+            running=[deque() for _ in range(n_envs)],
+            segments=[None] * n_envs,
+            remaining=np.zeros(n_envs, dtype=np.int64),
+            z=np.zeros((n_envs, self.latent_dim), dtype=np.float32),
+            planned=sum(seg.n_steps for program in programs for seg in program),
+        )
+
+    def _start_segment(self, env: VecEnv, slot: int, segment: Segment, obs: np.ndarray) -> None:
+        """Switch env ``slot`` to the segment's task and reset it explicitly (no auto-reset leak)."""
+        set_vec_env_task(env, self.train_tasks[segment.task], [slot])
+        obs[slot] = env.env_method("reset", indices=[slot])[0][0]
+
+    def _draw_z(self, segment: Segment) -> th.Tensor:
+        """z for a new trajectory: from the prior, or from the posterior of the task's context buffer."""
+        if segment.z_source == "posterior" and self.replay_buffer.context.size[segment.task] > 0:
+            with th.no_grad():
+                return self.sample_posterior(self._sample_context(np.array([segment.task]))).z[0]
+        return th.randn(self.latent_dim, device=self.device)
+
+    def collect_iteration(self, env: VecEnv, callback: BaseCallback, state: OpenIteration) -> bool:
+        """
+        Run the iteration's programs on the envs, each env one task at a time, until the iteration or the budget ends.
+
+        The caller calls ``callback.on_rollout_start()`` before planning a new iteration (:meth:`_plan_iteration` draws
+        from the global RNG), so that a checkpoint saved there resumes exactly; this ends with ``on_rollout_end()``.
+
+        :param env: the model's envs
+        :param callback: the callbacks of the running ``learn()``, called once per env step
+        :param state: the iteration (updated in place: what is left of it, the steps collected)
+        :return: whether training should go on (False: a callback asked to stop)
+        """
+        n_envs = env.num_envs
+        obs = np.array(self._last_obs, dtype=np.float32)  # type: ignore[arg-type]
+        z = th.as_tensor(state.z, device=self.device)
+        returns = self.prior_target == "mc"  # the prior-z rows get Monte-Carlo returns (sb3_pearl.pearl.returns)
+        continue_training = True
+        while True:
+            for slot in range(n_envs):
+                while state.remaining[slot] == 0 and (state.running[slot] or state.queue):
+                    if not state.running[slot]:
+                        state.running[slot] = state.queue.popleft()
+                    segment = state.running[slot].popleft()
+                    if segment.clear_context:
+                        self.replay_buffer.context.clear(segment.task)
+                    if segment.n_steps > 0:
+                        self._start_segment(env, slot, segment, obs)
+                        state.segments[slot] = segment
+                        state.remaining[slot] = segment.n_steps
+                        z[slot] = self._draw_z(segment)
+                        if returns and segment.z_source == "prior":
+                            start_piece(state, slot, segment.task)
+            active = np.flatnonzero(state.remaining > 0)
+            if len(active) == 0 or self.num_timesteps >= self._total_timesteps:
+                break
+
+            with th.no_grad():
+                if returns:  # the same draws as act(), with the log-probabilities the returns need
+                    actions_t, log_probs_t = self.policy.act_with_log_prob(th.as_tensor(obs, device=self.device), z)
+                    log_probs = log_probs_t.cpu().numpy().astype(np.float64)  # (n_envs,)
+                else:
+                    actions_t = self.policy.act(th.as_tensor(obs, device=self.device), z)
+                actions = actions_t.cpu().numpy()
+            check_finite_actions(actions, self.num_timesteps, type(self).__name__)
+            env_actions = actions if self.policy.discrete else self.policy.unscale_action(actions)
+            new_obs, rewards, dones, infos = env.step(env_actions)
+            # Divergence guard: a non-finite observation or reward is an error naming the env, task and timestep.
+            check_env_step(env, new_obs, rewards, dones, infos, self.num_timesteps, type(self).__name__, active.tolist())
+
+            for slot in active.tolist():
+                current = state.segments[slot]
+                assert current is not None
+                next_obs = infos[slot]["terminal_observation"] if dones[slot] else new_obs[slot]  # type: ignore[call-overload,index]
+                terminated = bool(dones[slot]) and not infos[slot].get("TimeLimit.truncated", False)
+                transition = (current.task, obs[slot], actions[slot].reshape(-1), rewards[slot], next_obs, terminated)
+                row = int(self.replay_buffer.rl.pos[current.task])
+                if returns:
+                    self._cut_before_overwrite(state, current.task, row)
+                self.replay_buffer.rl.add(*transition, prior_z=current.z_source == "prior")
+                if current.add_to_context:
+                    self.replay_buffer.context.add(*transition)
+                state.remaining[slot] -= 1
+                if returns:
+                    self._record_row(state, slot, row, float(log_probs[slot]), bool(dones[slot]), terminated)
+                    if state.remaining[slot] == 0:  # the segment ends inside the trajectory: the next one resets the env
+                        self._finish_open_pieces(state, [slot])
+                if dones[slot]:
+                    self._episode_num += 1
+                    if state.remaining[slot] > 0:
+                        z[slot] = self._draw_z(current)  # z is drawn once per trajectory
+                        if returns and current.z_source == "prior":
+                            start_piece(state, slot, current.task)
+            state.collected += len(active)
+            self.num_timesteps += len(active)
+            obs = np.array(new_obs, dtype=np.float32)
+            self._update_info_buffer([infos[i] for i in active], dones[active])
+            callback.update_locals(locals())
+            if not callback.on_step():
+                continue_training = False
+                break
+        self._last_obs = obs
+        state.z = z.cpu().numpy()
+        callback.on_rollout_end()
+        return continue_training
+
+    def _record_row(self, state: OpenIteration, slot: int, row: int, log_prob: float, done: bool, terminated: bool) -> None:
+        """Env ``slot`` stored buffer ``row`` (its action's log-probability ``log_prob``) in its piece, which ends with its
+        trajectory (``done``)."""
+        piece = state.pieces[slot] if state.pieces is not None else None
+        if piece is None:
+            return
+        piece.rows.append(row)
+        piece.log_probs.append(log_prob)
+        if done:
+            self._finish_piece(piece, terminated)
+            state.pieces[slot] = None  # type: ignore[index]
+
+    def _cut_before_overwrite(self, state: OpenIteration, task: int, row: int) -> None:
+        """
+        The RL buffer is about to write ``row`` of ``task``: an open piece that holds it (as its oldest row, since the ring
+        overwrites oldest first) is cut before it and goes on as a new piece. Its returns are written, then the overwritten
+        row loses its own (:meth:`TaskReplayBuffer.add`).
+        """
+        for slot, piece in enumerate(state.pieces or ()):
+            if piece is not None and piece.task == task and piece.rows and piece.rows[0] == row:
+                self._finish_piece(piece, terminated=False)
+                state.pieces[slot] = PendingPiece(piece.task)  # type: ignore[index]
+
+    def _finish_open_pieces(self, state: OpenIteration, slots: list[int] | None = None) -> None:
+        """
+        Cut the pieces still open on ``slots`` (None: every env): a segment or the collection ended inside a trajectory,
+        so their tails are bootstrapped.
+        """
+        for slot, piece in enumerate(state.pieces or ()):
+            if piece is not None and (slots is None or slot in slots):
+                self._finish_piece(piece, terminated=False)
+                state.pieces[slot] = None  # type: ignore[index]
+
+    def _finish_piece(self, piece: PendingPiece, terminated: bool) -> None:
+        """The returns of the piece's rows, into the RL buffer (:meth:`TaskReplayBuffer.write_returns`)."""
+        if not piece.rows:
+            return
+        buffer = self.replay_buffer.rl
+        rows = np.asarray(piece.rows, dtype=np.int64)
+        returns = piece_returns(
+            buffer.rewards[piece.task, rows, 0], np.asarray(piece.log_probs), self.gamma, terminated, self.prior_return_steps
+        )
+        buffer.write_returns(piece.task, rows, returns.reward_sum, returns.log_prob_sum, returns.discount, rows[returns.tail])
+
+    # ------------------------------------------------------------------------------------------
+    # Adaptation API (meta-test): task inference from the transitions observed on a new task
+    # ------------------------------------------------------------------------------------------
+    def reset_adaptation(self) -> None:
+        """Forget the observed context and draw z from the prior, held until :meth:`adapt` (k = 0)."""
+        self._adapt_context = []
+        self.policy.current_z = th.randn(self.latent_dim, device=self.device)
+
+    def resample_prior(self) -> None:
+        """A fresh z from the prior, the context kept (the reference's exploration trajectories, each with its own z)."""
+        self.policy.current_z = th.randn(self.latent_dim, device=self.device)
+
+    def observe(self, obs: np.ndarray, action: Any, reward: float, next_obs: np.ndarray, done: bool) -> None:
+        """
+        Record one transition of the new task (env-space action, as returned by :meth:`predict`).
+
+        :param obs: observation before the action, shape (obs_dim,)
+        :param action: the action taken (env units for Box, an index for Discrete)
+        :param reward: reward received
+        :param next_obs: observation after the action
+        :param done: whether the episode ended (not used by the encoder)
+        """
+        obs, next_obs = check_observed_transition(self.observation_space, obs, reward, next_obs)  # (obs_dim,) each
+        self._adapt_context.append(
+            (obs, stored_action(self.action_space, action), float(np.asarray(reward).reshape(-1)[0]), next_obs)
+        )
+
+    def _adaptation_context(self) -> th.Tensor:
+        """Everything observed since the last reset as one task's context, (1, N, context_dim)."""
+        obs, actions, rewards, next_obs = (np.stack(column) for column in zip(*self._adapt_context))
+        tensors = [
+            th.as_tensor(a, device=self.device, dtype=th.float32)[None] for a in (obs, actions, rewards[:, None], next_obs)
+        ]
+        return self.policy.make_context(*tensors)
+
+    def infer_posterior(self) -> tuple[th.Tensor, th.Tensor]:
+        """Posterior mean and variance (each (latent_dim,)) from everything observed since the last reset."""
+        if not self._adapt_context:
+            return th.zeros(self.latent_dim, device=self.device), th.ones(self.latent_dim, device=self.device)
+        with th.no_grad():
+            posterior = self.sample_posterior(self._adaptation_context(), sample=False)
+        return posterior.mean[0], posterior.var[0]
+
+    def adapt(self, sample_z: bool = True) -> None:
+        """
+        Infer the posterior from all observed transitions and act with a new z from it.
+
+        :param sample_z: draw z from the posterior (the reference's meta-test) or use its mean
+        """
+        if not self._adapt_context:  # nothing observed: a new draw from the prior
+            self.policy.current_z = (
+                th.randn(self.latent_dim, device=self.device) if sample_z else th.zeros(self.latent_dim, device=self.device)
+            )
+            return
+        with th.no_grad():
+            self.policy.current_z = self.sample_posterior(self._adaptation_context(), sample=sample_z).z[0]
 
     # ------------------------------------------------------------------------------------------
     # Save / load
@@ -580,22 +869,6 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
         return state_dicts, ["ent_coef_tensor"]
 
     @classmethod
-    def _saved_class_name(cls, data: dict[str, Any]) -> str:
-        prior_coef, mode = data.get("prior_coef", 0.0), data.get("prior_critic_mode", "none")
-        return "PEARLPlus" if prior_coef != 0.0 or mode != "none" else "PEARL"
-
-    @classmethod
-    def _check_saved_data(cls, data: dict[str, Any], path: str) -> None:
-        super()._check_saved_data(data, path)
-        prior_coef, mode = data.get("prior_coef", 0.0), data.get("prior_critic_mode", "none")
-        # PEARL.load refuses a PEARL+ zip (it would drop the prior term); PEARLPlus.load takes a PEARL one (prior_coef 0).
-        if cls._saved_class_name(data) == "PEARLPlus" and "PEARLPlus" not in {base.__name__ for base in cls.__mro__}:
-            raise ValueError(
-                f"{path} holds a PEARL+ model (prior_coef={prior_coef}, prior_critic={mode!r}): load it with PEARLPlus.load; "
-                f"{cls.__name__}.load would drop its prior term and prior critic"
-            )
-
-    @classmethod
     def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
         """
         The constructor's checks (:func:`~sb3_pearl.pearl.arguments.check_pearl_arguments`) on a loaded model's
@@ -624,6 +897,15 @@ class PEARL(PosteriorAdaptationMixin, MetaAlgorithm, ReplayBufferSaveLoadMixin, 
                 f"prior_coef must be 0 for PEARL (it has no prior term), got {prior_coef!r}: a PEARL+ model loads with "
                 "PEARLPlus.load"
             )
+
+    def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
+        """
+        Save the per-task RL and context buffers, atomically, with the training tasks recorded in them
+        (:func:`~sb3_pearl.common.persistence.save_replay_buffer_file`).
+
+        :param path: the pickle (``.pkl`` is appended when the path has no suffix, as in SB3) or an open binary file
+        """
+        save_replay_buffer_file(self.replay_buffer, self.train_tasks, path, self.verbose)
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """

@@ -156,6 +156,20 @@ class PEARLPlus(PEARL):
             self._setup_model()
 
     @classmethod
+    def _variant_of(cls, data: dict[str, Any]) -> str | None:
+        """
+        A zip with a prior term or a prior critic is PEARL+'s: ``PEARL.load`` refuses it (it would drop them);
+        ``PEARLPlus.load`` takes a PEARL zip too (``prior_coef`` 0, no prior critic).
+
+        :param data: a zip's ``data`` entry
+        :return: ``"a PEARL+ model (prior_coef=..., prior_critic=...)"``, or None for a PEARL zip
+        """
+        prior_coef, mode = data.get("prior_coef", 0.0), data.get("prior_critic_mode", "none")
+        if prior_coef == 0.0 and mode == "none":
+            return None
+        return f"a PEARL+ model (prior_coef={prior_coef}, prior_critic={mode!r})"
+
+    @classmethod
     def _check_saved_prior_arguments(cls, saved: Mapping[str, Any]) -> None:
         """
         :func:`check_pearl_plus_arguments` on a loaded model's prior settings (``prior_critic`` is saved as

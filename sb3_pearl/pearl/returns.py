@@ -20,8 +20,8 @@ Monte-Carlo targets collects bit-identical data). They are not recomputed from t
 action (tanh = +-1 in float32) cannot be inverted to the Gaussian sample that produced it.
 
 The buffer is a ring per task: before a row is overwritten, the open piece holding it (its oldest row: a piece longer
-than the capacity, or two envs on one task) is cut there (:func:`cut_before_overwrite`), so that no return is written
-on a row that holds another transition.
+than the capacity, or two envs on one task) is cut there (``PEARL._cut_before_overwrite``), so that no return is
+written on a row that holds another transition.
 
 The replay buffer keeps 100k rows per task, so the returns it holds are those of many past z0 policies: the prior
 critic fits a mixture of their values, which lags the current z0 policy (docs/pearl.md, "mc").
@@ -30,13 +30,9 @@ critic fits a mixture of their values, which lags the current z0 policy (docs/pe
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from sb3_pearl.pearl.collection import OpenIteration
-    from sb3_pearl.pearl.pearl import PEARL
 
 
 class PieceReturns(NamedTuple):
@@ -90,58 +86,3 @@ class PendingPiece:
     task: int
     rows: list[int] = field(default_factory=list)
     log_probs: list[float] = field(default_factory=list)  # log pi_b(a | s, z) of each row's action, as it was drawn
-
-
-def start_piece(state: OpenIteration, slot: int, task: int) -> None:
-    """Env ``slot`` starts a trajectory with z from the prior on ``task``: its rows will get Monte-Carlo returns."""
-    if state.pieces is None:
-        state.pieces = [None] * len(state.remaining)
-    state.pieces[slot] = PendingPiece(task)
-
-
-def record_row(model: PEARL, state: OpenIteration, slot: int, row: int, log_prob: float, done: bool, terminated: bool) -> None:
-    """Env ``slot`` stored buffer ``row`` (its action's log-probability ``log_prob``) in its piece, which ends with its
-    trajectory (``done``)."""
-    piece = state.pieces[slot] if state.pieces is not None else None
-    if piece is None:
-        return
-    piece.rows.append(row)
-    piece.log_probs.append(log_prob)
-    if done:
-        finish_piece(model, piece, terminated)
-        state.pieces[slot] = None  # type: ignore[index]
-
-
-def cut_before_overwrite(model: PEARL, state: OpenIteration, task: int, row: int) -> None:
-    """
-    The RL buffer is about to write ``row`` of ``task``: an open piece that holds it (as its oldest row, since the ring
-    overwrites oldest first) is cut before it and goes on as a new piece. Its returns are written, then the overwritten
-    row loses its own (:meth:`TaskReplayBuffer.add`).
-    """
-    for slot, piece in enumerate(state.pieces or ()):
-        if piece is not None and piece.task == task and piece.rows and piece.rows[0] == row:
-            finish_piece(model, piece, terminated=False)
-            state.pieces[slot] = PendingPiece(piece.task)  # type: ignore[index]
-
-
-def finish_open_pieces(model: PEARL, state: OpenIteration, slots: list[int] | None = None) -> None:
-    """
-    Cut the pieces still open on ``slots`` (None: every env): a segment or the collection ended inside a trajectory,
-    so their tails are bootstrapped.
-    """
-    for slot, piece in enumerate(state.pieces or ()):
-        if piece is not None and (slots is None or slot in slots):
-            finish_piece(model, piece, terminated=False)
-            state.pieces[slot] = None  # type: ignore[index]
-
-
-def finish_piece(model: PEARL, piece: PendingPiece, terminated: bool) -> None:
-    """The returns of the piece's rows, into the RL buffer (:meth:`TaskReplayBuffer.write_returns`)."""
-    if not piece.rows:
-        return
-    buffer = model.replay_buffer.rl
-    rows = np.asarray(piece.rows, dtype=np.int64)
-    returns = piece_returns(
-        buffer.rewards[piece.task, rows, 0], np.asarray(piece.log_probs), model.gamma, terminated, model.prior_return_steps
-    )
-    buffer.write_returns(piece.task, rows, returns.reward_sum, returns.log_prob_sum, returns.discount, rows[returns.tail])

@@ -1,6 +1,7 @@
 """Gradient conflict of the two actor terms of PEARL+ (the prior term against the posterior term).
 
-:func:`compute_gradient_conflict` averages :func:`~sb3_pearl.pearl.gradient_conflict.actor_gradient_conflict` over
+:func:`compute_gradient_conflict` averages :func:`actor_gradient_conflict` (a model's
+:func:`~sb3_pearl.pearl.gradient_conflict.gradient_conflict`) over
 meta-batches for :func:`~sb3_pearl.pearl.diagnostics.compute_diagnostics` (the per-step measure and its training log
 live in :mod:`sb3_pearl.pearl.gradient_conflict`, beside the update that logs them).
 """
@@ -14,12 +15,24 @@ import numpy as np
 import torch as th
 
 from sb3_pearl.common.buffers import MetaReplayBuffer
-from sb3_pearl.pearl.gradient_conflict import actor_gradient_conflict, record_gradient_conflict
+from sb3_pearl.common.type_aliases import PEARLLosses
+from sb3_pearl.pearl.gradient_conflict import gradient_conflict, record_gradient_conflict
 
 __all__ = ["actor_gradient_conflict", "compute_gradient_conflict", "record_gradient_conflict"]
 
 if TYPE_CHECKING:
     from sb3_pearl.pearl.pearl import PEARL
+
+
+def actor_gradient_conflict(model: PEARL, losses: PEARLLosses) -> dict[str, float]:
+    """
+    :func:`~sb3_pearl.pearl.gradient_conflict.gradient_conflict` of a model's two actor terms in one step.
+
+    :param model: the PEARL / PEARL+ model
+    :param losses: the losses of the step (``model._compute_losses``)
+    :return: ``ratio``, ``cos``, ``prior_norm`` and ``post_norm`` (see ``gradient_conflict``)
+    """
+    return gradient_conflict(model.actor, model.prior_coef, losses)
 
 
 def compute_gradient_conflict(model: PEARL, buffer: MetaReplayBuffer, n_batches: int) -> dict[str, Any]:
