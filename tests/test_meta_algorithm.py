@@ -16,7 +16,7 @@ from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transi
 from sb3_pearl.finetune import FineTune
 from sb3_pearl.maml import MAML
 from sb3_pearl.pearl.losses import LossSettings, compute_losses
-from sb3_pearl.registry import ZOO_SET_KWARGS, constructor_kwargs
+from sb3_pearl.registry import ZOO_SET_KWARGS, constructor_kwargs, constructor_parameters
 
 th.set_num_threads(1)
 
@@ -149,13 +149,25 @@ def test_training_plans() -> None:
 # PEARLPlus: its own arguments plus PEARL's through **kwargs (SB3's set-up idiom)
 # ----------------------------------------------------------------------------------------------
 def test_pearlplus_takes_pearls_arguments_and_its_own() -> None:
+    # Each parameter is written once: PEARL+'s in PEARLPlus.__init__, PEARL's in PEARL.__init__ (forwarded by name).
     own = inspect.signature(PEARLPlus.__init__).parameters
     assert {name for name, p in own.items() if p.kind == p.KEYWORD_ONLY} == PRIOR_ARGUMENTS | {"_init_setup_model"}
     assert any(p.kind == p.VAR_KEYWORD for p in own.values())
-    # The registry follows **kwargs to PEARL: exactly PEARL's arguments and the prior term's.
+    # inspect.signature shows the whole constructor: PEARL+'s arguments, then PEARL's with their defaults, no **kwargs.
+    full = inspect.signature(PEARLPlus).parameters
+    pearl = inspect.signature(PEARL).parameters
+    assert not any(p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL) for p in full.values())
+    prior_order = [name for name in own if name in PRIOR_ARGUMENTS]
+    pearl_order = [name for name in pearl if name not in ("policy", "env", "_init_setup_model")]
+    assert list(full) == ["policy", "env", *prior_order, *pearl_order, "_init_setup_model"]
+    for name, parameter in pearl.items():
+        assert (full[name].default, full[name].annotation) == (parameter.default, parameter.annotation), name
+        if name not in ("policy", "env"):
+            assert full[name].kind == parameter.KEYWORD_ONLY, name  # passed by name, as PEARLPlus forwards them
+    # The registry reads that signature: exactly PEARL's arguments and the prior term's.
+    assert constructor_parameters(PEARLPlus) == dict(full)
     assert constructor_kwargs(PEARLPlus) == constructor_kwargs(PEARL) | PRIOR_ARGUMENTS
-    pearl_args = set(inspect.signature(PEARL.__init__).parameters) - {"self"}
-    assert constructor_kwargs(PEARLPlus) == (pearl_args | PRIOR_ARGUMENTS) - ZOO_SET_KWARGS
+    assert constructor_kwargs(PEARLPlus) == (set(pearl) | PRIOR_ARGUMENTS) - ZOO_SET_KWARGS
     assert len(constructor_kwargs(PEARLPlus)) == 39
 
 

@@ -75,8 +75,8 @@ class PEARLPolicy(BasePolicy):
     :param latent_dim: size of z (reference: 5)
     :param encoder_arch: hidden sizes of the context encoder (reference: [200, 200, 200])
     :param use_next_obs_in_context: context transitions are (s, a, r, s') instead of (s, a, r)
-    :param prior_critic: ``"separate"`` (PEARL+: extra critic Q~(s, a, z0)), ``"shared"`` (ablation
-        PEARL+ (w/o): the prior term uses Q(s, a, z0)) or ``"none"`` (PEARL)
+    :param prior_critic: ``"none"`` (PEARL, the default), ``"separate"`` (PEARL+: extra critic Q~(s, a, z0)) or
+        ``"shared"`` (ablation PEARL+ (w/o): the prior term uses Q(s, a, z0)); PEARLPlus sets it
     :param prior_critic_arch: hidden sizes of the prior critic (paper: [300]*3, ablation [100]*3)
     :param n_critics: number of Q networks of the critic (twin Q: 2)
     :param prior_n_critics: number of Q networks of the prior critic; the paper adds "a new Q-network"
@@ -98,7 +98,7 @@ class PEARLPolicy(BasePolicy):
         latent_dim: int = 5,
         encoder_arch: list[int] | None = None,
         use_next_obs_in_context: bool = False,
-        prior_critic: str = "separate",
+        prior_critic: str = "none",
         prior_critic_arch: list[int] | None = None,
         n_critics: int = 2,
         prior_n_critics: int = 1,
