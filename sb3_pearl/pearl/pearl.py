@@ -329,11 +329,22 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             settings=self._loss_settings(),
         )
 
-    @staticmethod
-    def _named_losses(losses: PEARLLosses) -> dict[str, th.Tensor]:
-        """The losses of a step by name (the divergence guard's message)."""
-        names = ("critic_loss", "kl_loss", "prior_critic_loss", "actor_loss", "prior_actor_loss", "ent_coef_loss", "ent_coef")
+    def _named_losses(self, losses: PEARLLosses) -> dict[str, th.Tensor]:
+        """The losses of a step by name, in the order of the total loss (the divergence guard's message)."""
+        names = ("critic_loss", "kl_loss", "actor_loss", "ent_coef_loss", "ent_coef")
         return {name: getattr(losses, name) for name in names}
+
+    def _logged_losses(self, losses: PEARLLosses) -> dict[str, th.Tensor]:
+        """The values of a step logged as ``train/<name>`` (their means over the steps of a ``train()`` call)."""
+        return {
+            "critic_loss": losses.critic_loss,
+            "kl": losses.kl_loss,
+            "actor_loss": losses.actor_loss,
+            "ent_coef": losses.ent_coef,
+            "ent_coef_loss": losses.ent_coef_loss,
+            "z_mean_abs": losses.z_mean.abs().mean(),
+            "z_var": losses.z_var.mean(),
+        }
 
     def _divergence_settings(self) -> dict[str, Any]:
         """The settings the divergence guard names as likely fixes."""
@@ -375,7 +386,9 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             tasks, batch_size or self.batch_size, self.device, returns=self._returns_horizon() is not None
         )
         context = self._sample_context(tasks)
-        z0 = th.randn(len(tasks), self.latent_dim, device=self.device)  # one prior z per task
+        # One z ~ N(0, I) per task: the prior terms' z0 where the loss settings switch them on; drawn in every model, so
+        # that PEARL and PEARL+ share one random stream.
+        z0 = th.randn(len(tasks), self.latent_dim, device=self.device)
         return replay, context, z0
 
     def _target_pairs(self) -> tuple[list[th.Tensor], list[th.Tensor]]:
@@ -418,7 +431,8 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             steps_done += 1
             # Sample meta_batch training tasks: each task's RL batch b, context c and one prior latent z0.
             replay, context, z0 = self._sample_meta_batch(batch_size)
-            # Infer z ~ q(z | c) from each context, then the losses: critic, KL, actor and entropy (and the prior terms).
+            # Infer z ~ q(z | c) from each context, then the losses: critic, KL, actor and entropy (and what the loss
+            # settings switch on).
             with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self._bf16_enabled):
                 losses = self._compute_losses(replay, context, z0)
             if self.grad_conflict_log_freq > 0 and self._n_updates % self.grad_conflict_log_freq == 0:
@@ -441,17 +455,7 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             self._count_gradient_step()  # counted once the step's work is done: a save between steps sees it whole
             if self.gradient_step_callback is not None:
                 self.gradient_step_callback()
-            for key, value in (
-                ("critic_loss", losses.critic_loss),
-                ("kl", losses.kl_loss),
-                ("prior_critic_loss", losses.prior_critic_loss),
-                ("actor_loss", losses.actor_loss),
-                ("prior_actor_loss", losses.prior_actor_loss),
-                ("ent_coef", losses.ent_coef),
-                ("ent_coef_loss", losses.ent_coef_loss),
-                ("z_mean_abs", losses.z_mean.abs().mean()),
-                ("z_var", losses.z_var.mean()),
-            ):
+            for key, value in self._logged_losses(losses).items():
                 logs.setdefault(key, []).append(float(value.item()))
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

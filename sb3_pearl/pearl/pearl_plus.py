@@ -19,7 +19,7 @@ from sb3_pearl.common.persistence import saved_arguments
 from sb3_pearl.common.type_aliases import PEARLLosses
 from sb3_pearl.pearl.losses import LossSettings
 from sb3_pearl.pearl.pearl import PEARL
-from sb3_pearl.pearl.policies import PRIOR_CRITIC_INPUTS, PRIOR_CRITIC_MODES, PEARLPolicy
+from sb3_pearl.pearl.policies import PRIOR_CRITIC_MODES, PEARLPolicy, check_prior_critic
 
 SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
 
@@ -43,18 +43,12 @@ def check_pearl_plus_arguments(arguments: Mapping[str, Any]) -> None:
     check_real("prior_coef", prior_coef, 0.0, hint="the paper's alpha, default 0.1; 0 gives PEARL")
     check_arch("prior_critic_arch", arguments["prior_critic_arch"])
     check_int("prior_n_critics", arguments["prior_n_critics"], 1, hint="Q networks of the prior critic")
-    modes = tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none")
-    if prior_critic not in modes:
-        raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {modes} (PEARL has none)")
+    # The policy's checks, before anything is built; a PEARL+ model has a prior term ("none" is PEARL's).
+    check_prior_critic(prior_critic, prior_critic_input, modes=tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none"))
     if prior_data not in PRIOR_DATA_MODES:
         raise ValueError(
             f"unknown prior_data {prior_data!r}: expected one of {PRIOR_DATA_MODES} (the replay rows the prior terms "
             "use: all of them, as in the paper, or only those collected with z from the prior)"
-        )
-    if prior_critic_input not in PRIOR_CRITIC_INPUTS:
-        raise ValueError(
-            f"unknown prior_critic_input {prior_critic_input!r}: expected one of {PRIOR_CRITIC_INPUTS} "
-            "(the paper's Q~(s, a, z0), or a z-free Q~(s, a))"
         )
     if prior_target not in PRIOR_TARGETS:
         raise ValueError(
@@ -75,6 +69,18 @@ def check_pearl_plus_arguments(arguments: Mapping[str, Any]) -> None:
             "prior_critic_input, prior_target and prior_conservative_weight configure the separate prior critic: "
             "prior_critic='shared' has none (use prior_critic='separate')"
         )
+
+
+def _with_prior_terms(values: dict[str, th.Tensor], losses: PEARLLosses, kl_key: str) -> dict[str, th.Tensor]:
+    """
+    PEARL's losses of a step by name, with PEARL+'s two prior terms in the order of the total loss: the prior critic's
+    after the KL (named ``kl_key``), the actor's after the actor's.
+    """
+    items = list(values.items())
+    for after, name in ((kl_key, "prior_critic_loss"), ("actor_loss", "prior_actor_loss")):
+        at = [key for key, _ in items].index(after) + 1
+        items.insert(at, (name, getattr(losses, name)))
+    return dict(items)
 
 
 @forwards_arguments_to(PEARL)
@@ -212,6 +218,12 @@ class PEARLPlus(PEARL):
 
     def _actor_second_term_weight(self) -> float:
         return self.prior_coef
+
+    def _named_losses(self, losses: PEARLLosses) -> dict[str, th.Tensor]:
+        return _with_prior_terms(super()._named_losses(losses), losses, "kl_loss")
+
+    def _logged_losses(self, losses: PEARLLosses) -> dict[str, th.Tensor]:
+        return _with_prior_terms(super()._logged_losses(losses), losses, "kl")
 
     def _divergence_settings(self) -> dict[str, Any]:
         return {**super()._divergence_settings(), "prior_coef": self.prior_coef}
