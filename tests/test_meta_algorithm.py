@@ -15,6 +15,7 @@ from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
 from sb3_pearl.finetune import FineTune
 from sb3_pearl.maml import MAML
+from sb3_pearl.oracle import Oracle
 from sb3_pearl.pearl.losses import LossSettings, compute_losses
 from sb3_pearl.registry import ZOO_SET_KWARGS, constructor_kwargs, constructor_parameters
 
@@ -169,6 +170,27 @@ def test_pearlplus_takes_pearls_arguments_and_its_own() -> None:
     assert constructor_kwargs(PEARLPlus) == constructor_kwargs(PEARL) | PRIOR_ARGUMENTS
     assert constructor_kwargs(PEARLPlus) == (set(pearl) | PRIOR_ARGUMENTS) - ZOO_SET_KWARGS
     assert len(constructor_kwargs(PEARLPlus)) == 39
+
+
+def test_every_algorithm_shows_its_whole_constructor() -> None:
+    """inspect.signature of each algorithm lists every argument it takes, its parent's forwarded ones included (no
+    **kwargs), and nothing it refuses; a subclass with a constructor of its own shows its own."""
+    from sb3_pearl.oracle.oracle import _FINE_TUNING_KWARGS
+    from sb3_pearl.registry import algorithm_classes
+
+    for name, cls in algorithm_classes().items():
+        parameters = inspect.signature(cls).parameters
+        assert not any(p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL) for p in parameters.values()), name
+    finetune, oracle = inspect.signature(FineTune).parameters, inspect.signature(Oracle).parameters
+    assert set(oracle) == set(finetune) - set(_FINE_TUNING_KWARGS)  # Oracle refuses the fine-tuning arguments
+    with pytest.raises(ValueError, match="Oracle does not fine-tune"):
+        Oracle("MlpPolicy", "PointGoalMeta-v0", adapt_gradient_steps=1)
+
+    class Variant(PEARLPlus):
+        def __init__(self, policy: str, env: str, *, extra: int = 1, **kwargs: Any) -> None:
+            super().__init__(policy, env, **kwargs)
+
+    assert list(inspect.signature(Variant).parameters) == ["policy", "env", "extra", "kwargs"]
 
 
 def test_pearlplus_refuses_a_misspelled_argument() -> None:

@@ -94,13 +94,14 @@ def check_task_arguments(
         raise ValueError("train_tasks must hold at least one task (or be None to draw them)")
 
 
-def forwards_arguments_to(parent: type) -> Callable[[AlgorithmClass], AlgorithmClass]:
+def forwards_arguments_to(parent: type, refused: tuple[str, ...] = ()) -> Callable[[AlgorithmClass], AlgorithmClass]:
     """
     Class decorator for an algorithm whose ``__init__`` states its own parameters and forwards the others to
     ``parent``'s by ``**kwargs`` (SB3's set-up idiom): ``inspect.signature`` of the class then lists both, its own first,
     ``parent``'s after them as keyword-only, with their defaults (each parameter is written once, in its own class).
 
     :param parent: the class whose constructor takes the forwarded ``**kwargs``
+    :param refused: parameters of ``parent`` that the class refuses (left out of its signature)
     :return: the decorator
     """
 
@@ -114,7 +115,7 @@ def forwards_arguments_to(parent: type) -> Callable[[AlgorithmClass], AlgorithmC
         inherited = [
             p.replace(kind=inspect.Parameter.KEYWORD_ONLY)
             for p in inspect.signature(parent).parameters.values()
-            if p.name not in taken and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)
+            if p.name not in taken and p.name not in refused and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)
         ]
         last_own = [p for p in named if p.name == "_init_setup_model"]  # SB3 keeps it last
         parameters = [p for p in named if p.name != "_init_setup_model"] + inherited + last_own
@@ -185,6 +186,8 @@ class MetaAlgorithm(BaseAlgorithm):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
+        if "__init__" in vars(cls):  # a signature shown for a parent's constructor (forwards_arguments_to) is not its own
+            setattr(cls, "__signature__", None)  # noqa: B010 (None: inspect reads __init__)
         if cls.__dict__.get("saved_data_keys"):
             _SIGNATURES[cls.__name__] = cls
 

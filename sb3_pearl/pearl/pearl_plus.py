@@ -185,15 +185,12 @@ class PEARLPlus(PEARL):
     # The hooks of PEARL's gradient step: the prior terms, in PEARL's one loss step
     # ------------------------------------------------------------------------------------------
     def _loss_settings(self) -> LossSettings:
-        return (
-            super()
-            ._loss_settings()
-            ._replace(
-                prior_term=self.uses_prior_term,
-                prior_data=self.prior_data,
-                prior_target=self.prior_target,
-                prior_conservative_weight=self.prior_conservative_weight,
-            )
+        settings = super()._loss_settings()
+        return settings._replace(
+            prior_term=self.uses_prior_term,
+            prior_data=self.prior_data,
+            prior_target=self.prior_target,
+            prior_conservative_weight=self.prior_conservative_weight,
         )
 
     def _total_loss(self, losses: PEARLLosses) -> th.Tensor:
