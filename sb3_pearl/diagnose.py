@@ -41,6 +41,7 @@ from sb3_pearl.pearl.diagnostics import (
     DEFAULT_N_Z0,
     compute_diagnostics,
     format_diagnostics,
+    prior_term,
 )
 from sb3_pearl.zoo.model_checks import check_saved_model_family
 from sb3_pearl.zoo.safe_config import load_run_yaml
@@ -150,14 +151,14 @@ def load_model(model_path: str | Path, env: gym.Env, device: str = "auto", env_i
         data = read_model_data(model_path)  # a truncated or corrupt zip: an error that says so
     except ValueError as error:
         raise RunFolderError(str(error)) from None
-    if "prior_critic_mode" not in data or "prior_coef" not in data:
+    if any(key not in data for key in PEARL.saved_data_keys):
         raise RunFolderError(f"{model_path} is not a PEARL / PEARL+ model: the diagnostics need one")
     if env_id is not None:
         try:
             check_saved_model_family(str(model_path), env, env_id, "--env-id")
         except UsageError as error:
             raise RunFolderError(str(error)) from None
-    cls = PEARL if data["prior_critic_mode"] == "none" else PEARLPlus
+    cls = PEARLPlus if PEARLPlus._variant_of(data) is not None else PEARL  # a PEARL model (no prior term): PEARL
     return cls.load(model_path, env=env, device=device)
 
 
@@ -224,7 +225,7 @@ def draw_prior_paths(model: PEARL, env: gym.Env, out: str, n_tasks: int, n_z0: i
     paths = prior_paths(model, env, tasks, z0, seed, max_steps)
     radius = getattr(env.unwrapped, "hazard_radius", None)
     rate = np.mean([r.violated for rollouts in paths for r in rollouts])
-    label = f"{type(model).__name__} (prior_coef {model.prior_coef:g})"
+    label = f"{type(model).__name__} (prior_coef {prior_term(model).coef:g})"
     plot_prior_paths(paths, tasks, out, hazard_radius=radius, title=f"{label}: k = 0 paths, {rate:.0%} in a hazard")
 
 

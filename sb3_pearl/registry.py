@@ -48,24 +48,15 @@ def algorithm_class(name: str) -> type:
 
 def constructor_parameters(algo_class: type) -> dict[str, inspect.Parameter]:
     """
-    The parameters ``algo_class(...)`` takes, following ``**kwargs`` up the MRO: a constructor that forwards
-    ``**kwargs`` (``PEARLPlus`` to ``PEARL``, ``FineTune`` to ``DiscreteSAC``) adds its parent's, and the walk stops at
-    the first one that does not. Where a subclass restates a parameter, its own (default included) wins.
+    The parameters ``algo_class(...)`` takes: ``inspect.signature`` of the class. A constructor that forwards
+    ``**kwargs`` to its parent's (``PEARLPlus`` to ``PEARL``, ``FineTune`` to ``DiscreteSAC``) shows its parent's too
+    (:func:`~sb3_pearl.common.meta_algorithm.forwards_arguments_to`).
 
     :param algo_class: an algorithm class
-    :return: name -> parameter (``self``, ``*args`` and ``**kwargs`` left out)
+    :return: name -> parameter (``*args`` and ``**kwargs`` left out)
     """
-    parameters: dict[str, inspect.Parameter] = {}
-    for cls in algo_class.__mro__:
-        if "__init__" not in vars(cls):
-            continue
-        params = inspect.signature(vars(cls)["__init__"]).parameters.values()
-        for p in params:
-            if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self":
-                parameters.setdefault(p.name, p)
-        if not any(p.kind == p.VAR_KEYWORD for p in params):
-            break
-    return parameters
+    parameters = inspect.signature(algo_class).parameters.values()
+    return {p.name: p for p in parameters if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)}
 
 
 def constructor_kwargs(algo_class: type) -> set[str]:

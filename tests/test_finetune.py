@@ -320,6 +320,9 @@ def test_finetune_states_only_its_own_arguments() -> None:
     own = set(inspect.signature(FineTune.__init__).parameters) - {"self", "policy", "env", "kwargs", "_init_setup_model"}
     sac = set(inspect.signature(DiscreteSAC.__init__).parameters) - {"self", "policy", "env"}
     assert not own & sac
+    shown = inspect.signature(FineTune).parameters  # inspect.signature shows both, each with its default
+    assert set(shown) == own | sac | {"policy", "env", "_init_setup_model"}
+    assert all(shown[name].default == inspect.signature(DiscreteSAC).parameters[name].default for name in sac)
     assert sac - {"tensorboard_log", "seed", "verbose", "device", "_init_setup_model"} <= constructor_kwargs(FineTune)
     assert {"adapt_gradient_steps", "n_train_tasks"} <= constructor_kwargs(FineTune)
     with pytest.raises(ValueError, match="batch_size must be an integer >= 1"):

@@ -15,8 +15,9 @@ from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
 from sb3_pearl.finetune import FineTune
 from sb3_pearl.maml import MAML
+from sb3_pearl.oracle import Oracle
 from sb3_pearl.pearl.losses import LossSettings, compute_losses
-from sb3_pearl.registry import ZOO_SET_KWARGS, constructor_kwargs
+from sb3_pearl.registry import ZOO_SET_KWARGS, constructor_kwargs, constructor_parameters
 
 th.set_num_threads(1)
 
@@ -149,14 +150,47 @@ def test_training_plans() -> None:
 # PEARLPlus: its own arguments plus PEARL's through **kwargs (SB3's set-up idiom)
 # ----------------------------------------------------------------------------------------------
 def test_pearlplus_takes_pearls_arguments_and_its_own() -> None:
+    # Each parameter is written once: PEARL+'s in PEARLPlus.__init__, PEARL's in PEARL.__init__ (forwarded by name).
     own = inspect.signature(PEARLPlus.__init__).parameters
     assert {name for name, p in own.items() if p.kind == p.KEYWORD_ONLY} == PRIOR_ARGUMENTS | {"_init_setup_model"}
     assert any(p.kind == p.VAR_KEYWORD for p in own.values())
-    # The registry follows **kwargs to PEARL: exactly PEARL's arguments and the prior term's.
+    # inspect.signature shows the whole constructor: PEARL+'s arguments, then PEARL's with their defaults, no **kwargs.
+    full = inspect.signature(PEARLPlus).parameters
+    pearl = inspect.signature(PEARL).parameters
+    assert not any(p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL) for p in full.values())
+    prior_order = [name for name in own if name in PRIOR_ARGUMENTS]
+    pearl_order = [name for name in pearl if name not in ("policy", "env", "_init_setup_model")]
+    assert list(full) == ["policy", "env", *prior_order, *pearl_order, "_init_setup_model"]
+    for name, parameter in pearl.items():
+        assert (full[name].default, full[name].annotation) == (parameter.default, parameter.annotation), name
+        if name not in ("policy", "env"):
+            assert full[name].kind == parameter.KEYWORD_ONLY, name  # passed by name, as PEARLPlus forwards them
+    # The registry reads that signature: exactly PEARL's arguments and the prior term's.
+    assert constructor_parameters(PEARLPlus) == dict(full)
     assert constructor_kwargs(PEARLPlus) == constructor_kwargs(PEARL) | PRIOR_ARGUMENTS
-    pearl_args = set(inspect.signature(PEARL.__init__).parameters) - {"self"}
-    assert constructor_kwargs(PEARLPlus) == (pearl_args | PRIOR_ARGUMENTS) - ZOO_SET_KWARGS
+    assert constructor_kwargs(PEARLPlus) == (set(pearl) | PRIOR_ARGUMENTS) - ZOO_SET_KWARGS
     assert len(constructor_kwargs(PEARLPlus)) == 39
+
+
+def test_every_algorithm_shows_its_whole_constructor() -> None:
+    """inspect.signature of each algorithm lists every argument it takes, its parent's forwarded ones included (no
+    **kwargs), and nothing it refuses; a subclass with a constructor of its own shows its own."""
+    from sb3_pearl.oracle.oracle import _FINE_TUNING_KWARGS
+    from sb3_pearl.registry import algorithm_classes
+
+    for name, cls in algorithm_classes().items():
+        parameters = inspect.signature(cls).parameters
+        assert not any(p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL) for p in parameters.values()), name
+    finetune, oracle = inspect.signature(FineTune).parameters, inspect.signature(Oracle).parameters
+    assert set(oracle) == set(finetune) - set(_FINE_TUNING_KWARGS)  # Oracle refuses the fine-tuning arguments
+    with pytest.raises(ValueError, match="Oracle does not fine-tune"):
+        Oracle("MlpPolicy", "PointGoalMeta-v0", adapt_gradient_steps=1)
+
+    class Variant(PEARLPlus):
+        def __init__(self, policy: str, env: str, *, extra: int = 1, **kwargs: Any) -> None:
+            super().__init__(policy, env, **kwargs)
+
+    assert list(inspect.signature(Variant).parameters) == ["policy", "env", "extra", "kwargs"]
 
 
 def test_pearlplus_refuses_a_misspelled_argument() -> None:

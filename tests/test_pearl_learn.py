@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 import gymnasium as gym
@@ -14,6 +15,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 
 from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.envs.point_goal import PointGoalMetaEnv
+from sb3_pearl.pearl.losses import LossSettings
 from tests.conftest import CountSteps, make_discrete_env, make_point_env
 
 
@@ -164,11 +166,31 @@ def test_clear_errors(tiny_kwargs: dict[str, Any]) -> None:
         PEARLPlus("MlpPolicy", "PointGoalMeta-v0", ent_coef="fixed")
 
 
-def test_pearl_has_no_prior_critic(tiny_kwargs: dict[str, Any]) -> None:
+def test_pearl_has_no_prior_term(tiny_kwargs: dict[str, Any]) -> None:
+    """PEARL names nothing of PEARL+: no prior critic in its policy, no prior setting, no prior term in its losses."""
     kwargs = {k: v for k, v in tiny_kwargs.items() if k != "prior_critic_arch"}
     model = PEARL("MlpPolicy", "PointGoalMeta-v0", seed=0, **kwargs)
-    assert model.prior_coef == 0.0 and model.prior_critic is None
+    assert model.policy.prior_critic is None and model.policy.prior_critic_mode == "none"
     assert not any("prior" in name for name in model.policy.state_dict())
+    assert not [name for name in dir(model) if name.startswith("prior_") or name == "uses_prior_term"]
+    assert not [name for name in inspect.signature(PEARL).parameters if name.startswith("prior_")]
+    assert "prior_critic" not in model.policy_kwargs and "prior_critic" not in model.networks
+    settings = model._loss_settings()
+    assert settings == LossSettings(model.gamma, model.reward_scale, float(model.target_entropy))  # no prior switch set
+    assert not settings.prior_term and settings.prior_conservative_weight == 0.0
+    model.learn(4 * kwargs["num_initial_steps"], log_interval=1000)  # no dump: the logged keys stay readable
+    losses = model._compute_losses(*model._sample_meta_batch())
+    assert float(losses.prior_critic_loss) == 0.0 and float(losses.prior_actor_loss) == 0.0
+    assert not losses.prior_critic_loss.requires_grad and not losses.prior_actor_loss.requires_grad
+    plain = losses.critic_loss + model.kl_weight * losses.kl_loss + losses.actor_loss + losses.ent_coef_loss
+    assert th.equal(model._total_loss(losses), plain)  # the total has no prior term
+    assert model._target_pairs()[0] == [*model.critic.parameters()]  # the critic's pairs only
+    assert model._get_torch_save_params()[0] == ["policy", "encoder.optimizer", "actor.optimizer", "critic.optimizer"]
+    assert "prior_coef" not in model._divergence_settings()
+    assert not [name for name in model._named_losses(losses) if "prior" in name]
+    assert (
+        not [key for key in model.logger.name_to_value if "prior" in key] and "train/actor_loss" in model.logger.name_to_value
+    )
     shared = PEARLPlus("MlpPolicy", "PointGoalMeta-v0", seed=0, prior_critic="shared", **kwargs)
     assert shared.prior_critic is None and shared.prior_coef == 0.1
 

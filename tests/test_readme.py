@@ -90,7 +90,7 @@ def test_algorithm_page_parameters_are_the_constructors(page: str) -> None:
     signatures = re.findall(r"`(PEARL|PEARLPlus|FineTune|MAML)\((.*?)\)`", section, flags=re.S)
     assert signatures, f"{page}: no constructor signature in its Parameters section"
     for name, arguments in signatures:
-        parameters = constructor_parameters(getattr(sb3_pearl, name))  # **kwargs followed to the parent's
+        parameters = constructor_parameters(getattr(sb3_pearl, name))  # inspect.signature: a parent's forwarded too
         documented = re.findall(r"(\w+)=([^,]+)", arguments.replace("\n", " "))
         assert documented, name
         for key, value in documented:

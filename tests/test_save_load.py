@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import io
+import json
 import multiprocessing
 import os
 import random
@@ -299,7 +300,7 @@ def _saved_model(algo: str, folder: Path, tiny_kwargs: dict[str, Any]) -> tuple[
 @pytest.mark.parametrize(
     "algo, override, match",
     [
-        ("pearl", {"prior_coef": float("nan")}, r"prior_coef must be 0 for PEARL .*got nan"),
+        ("pearl", {"prior_coef": float("nan")}, r"prior_coef=nan is a setting of PEARLPlus, which PEARL does not have"),
         ("pearl", {"meta_batch": 0}, r"meta_batch must be an integer >= 1 .*got 0"),
         ("pearlplus", {"prior_coef": float("nan")}, r"prior_coef must be a finite number >= 0 .*got nan"),
         ("pearlplus", {"gamma": 1.5}, r"gamma must be a finite number in \(0, 1\] .*got 1.5"),
@@ -325,6 +326,51 @@ def test_load_runs_the_constructors_checks(
     with open(path, "rb") as file, pytest.raises(ValueError, match=match):  # a stream is checked too
         cls.load(file, custom_objects=override)
     cls.load(path)  # the saved values pass
+
+
+def _with_data(path: Path, out: Path, **entries: Any) -> Path:
+    """A copy of the zip ``path`` at ``out`` whose ``data`` entry also holds ``entries`` (a zip of an older version)."""
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(out, "w") as target:
+        for item in source.infolist():
+            raw = source.read(item.filename)
+            if item.filename == "data":
+                raw = json.dumps({**json.loads(raw), **entries}).encode()
+            target.writestr(item, raw)
+    return out
+
+
+def test_pearl_zips_with_and_without_pearlpluss_settings(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    """PEARL saves no PEARL+ setting; a PEARL zip written before the split (PEARL+'s settings at their neutral values)
+    loads with PEARL, which drops them, and acts the same; PEARLPlus.load takes either with no prior term."""
+    model = tiny_pearl(tiny_kwargs, PEARL, seed=0)
+    model.learn(4 * tiny_kwargs["num_initial_steps"])
+    model.save(tmp_path / "new.zip")
+    new_data = persistence.read_model_data(tmp_path / "new.zip")
+    assert not [key for key in new_data if key.startswith("prior_")]
+    old = _with_data(tmp_path / "new.zip", tmp_path / "old.zip", prior_coef=0.0, prior_critic_mode="none", prior_data="all")
+    obs = np.random.default_rng(0).uniform(-1, 1, (5, model.observation_space.shape[0])).astype(np.float32)
+    actions = []
+    for path in (tmp_path / "new.zip", old):
+        loaded = PEARL.load(path)
+        assert not [name for name in vars(loaded) if name.startswith("prior_")]
+        loaded.reset_adaptation()
+        th.manual_seed(1)
+        actions.append(loaded.predict(obs, deterministic=True)[0])
+        with open(path, "rb") as file:  # a stream as well
+            assert not [name for name in vars(PEARL.load(file)) if name.startswith("prior_")]
+    np.testing.assert_array_equal(actions[0], actions[1])
+    for path in (tmp_path / "new.zip", old):
+        plus = PEARLPlus.load(path)
+        settings = (plus.prior_coef, plus.prior_critic_mode, plus.prior_data, plus.prior_critic, plus.uses_prior_term)
+        assert settings == (0.0, "none", "all", None, False), path
+        with open(path, "rb") as file:
+            assert PEARLPlus.load(file).prior_coef == 0.0
+    # A zip with a prior term is PEARL+'s, whichever way it is handed over.
+    plus_zip = _with_data(tmp_path / "new.zip", tmp_path / "plus.zip", prior_coef=0.1, prior_critic_mode="shared")
+    with pytest.raises(ValueError, match=r"holds a PEARL\+ model .*load it with PEARLPlus.load"):
+        PEARL.load(plus_zip)
+    with open(plus_zip, "rb") as file, pytest.raises(ValueError, match=r"holds a PEARL\+ model"):
+        PEARL.load(file)
 
 
 def test_set_env_refuses_vec_normalize_and_another_task_family(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:

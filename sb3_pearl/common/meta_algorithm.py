@@ -29,11 +29,14 @@ one runs whatever code its author put in it: load only files you trust.
 
 from __future__ import annotations
 
+import inspect
 import io
+import json
 import os
 import pathlib
 import warnings
-from collections.abc import Mapping
+import zipfile
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -63,6 +66,7 @@ from sb3_pearl.common.type_aliases import TrainingPlan
 from sb3_pearl.envs.task_protocol import Task
 
 SelfMetaAlgorithm = TypeVar("SelfMetaAlgorithm", bound="MetaAlgorithm")
+AlgorithmClass = TypeVar("AlgorithmClass", bound=type)
 
 # The classes that declare the data keys every zip of theirs holds (filled by MetaAlgorithm.__init_subclass__).
 _SIGNATURES: dict[str, type[MetaAlgorithm]] = {}
@@ -88,6 +92,37 @@ def check_task_arguments(
     check_task_counts(n_train_tasks, n_test_tasks)
     if train_tasks is not None and len(train_tasks) == 0:
         raise ValueError("train_tasks must hold at least one task (or be None to draw them)")
+
+
+def forwards_arguments_to(parent: type, refused: tuple[str, ...] = ()) -> Callable[[AlgorithmClass], AlgorithmClass]:
+    """
+    Class decorator for an algorithm whose ``__init__`` states its own parameters and forwards the others to
+    ``parent``'s by ``**kwargs`` (SB3's set-up idiom): ``inspect.signature`` of the class then lists both, its own first,
+    ``parent``'s after them as keyword-only, with their defaults (each parameter is written once, in its own class).
+
+    :param parent: the class whose constructor takes the forwarded ``**kwargs``
+    :param refused: parameters of ``parent`` that the class refuses (left out of its signature)
+    :return: the decorator
+    """
+
+    def decorate(cls: AlgorithmClass) -> AlgorithmClass:
+        own = [p for p in inspect.signature(vars(cls)["__init__"]).parameters.values() if p.name != "self"]
+        forwarded = [p for p in own if p.kind == p.VAR_KEYWORD]
+        if not forwarded:
+            raise TypeError(f"{cls.__name__}.__init__ forwards no **kwargs to {parent.__name__}")
+        named = [p for p in own if p.kind != p.VAR_KEYWORD]
+        taken = {p.name for p in named}
+        inherited = [
+            p.replace(kind=inspect.Parameter.KEYWORD_ONLY)
+            for p in inspect.signature(parent).parameters.values()
+            if p.name not in taken and p.name not in refused and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)
+        ]
+        last_own = [p for p in named if p.name == "_init_setup_model"]  # SB3 keeps it last
+        parameters = [p for p in named if p.name != "_init_setup_model"] + inherited + last_own
+        setattr(cls, "__signature__", inspect.Signature(parameters))  # noqa: B010 (not a declared attribute of type)
+        return cls
+
+    return decorate
 
 
 def check_observed_transition(
@@ -151,6 +186,8 @@ class MetaAlgorithm(BaseAlgorithm):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
+        if "__init__" in vars(cls):  # a signature shown for a parent's constructor (forwards_arguments_to) is not its own
+            setattr(cls, "__signature__", None)  # noqa: B010 (None: inspect reads __init__)
         if cls.__dict__.get("saved_data_keys"):
             _SIGNATURES[cls.__name__] = cls
 
@@ -389,11 +426,19 @@ class MetaAlgorithm(BaseAlgorithm):
         :raises ValueError: the file is not a complete zip of this class, or a hyperparameter (saved, in
             ``custom_objects`` or in ``kwargs``) fails the constructor's checks
         """
+        source = str(path) if isinstance(path, (str, os.PathLike)) else str(getattr(path, "name", "the model file"))
+        cls._refuse_foreign_overrides({**(custom_objects or {}), **kwargs}, source)
+        held: dict[str, Any] | None = None
         if isinstance(path, (str, os.PathLike)):
-            data = read_model_data(path)
+            held = data = read_model_data(path)
             cls._check_saved_data(data, str(path))
             # Before SB3 builds anything from them: a bad value fails here with the constructor's message.
             cls._check_loaded_arguments({**loaded_model_data(data, custom_objects), **kwargs}, str(path))
+        elif path.seekable():  # a stream: its data entry read here too, the stream handed back to SB3 where it was
+            start = path.tell()
+            with zipfile.ZipFile(path) as archive:
+                held = json.loads(archive.read("data")) if "data" in archive.namelist() else None
+            path.seek(start)
         model = super().load(  # type: ignore[misc]
             path,
             env=env,
@@ -404,7 +449,9 @@ class MetaAlgorithm(BaseAlgorithm):
             **kwargs,
         )
         if not isinstance(path, (str, os.PathLike)):  # a stream is read once, by SB3: its model is checked instead
-            cls._check_loaded_arguments(vars(model), str(getattr(path, "name", "the model file")))
+            cls._check_saved_data(vars(model), source)
+            cls._check_loaded_arguments(vars(model), source)
+        model._settle_added_data(held, kwargs)
         env_state = model.__dict__.pop("_env_state", None)
         if restore_env and env is not None:
             resumable = env_state is not None and model._last_obs is not None
@@ -447,6 +494,73 @@ class MetaAlgorithm(BaseAlgorithm):
                 f"{source}: {error} ({cls.__name__}.load checks the hyperparameters as the constructor does: the "
                 "value is the zip's, or the one given in custom_objects or as a load() keyword)"
             ) from None
+
+    @classmethod
+    def _added_data(cls) -> dict[str, Any]:
+        """
+        The saved entries this class adds to its parent's, each with the value that stands for none of what it adds,
+        where models of its parent were saved with them (before the two classes were split). Asked only of the classes
+        that define it: the parent's ``load`` drops these entries (and refuses them as ``load`` overrides), this class's
+        ``load`` gives a parent's zip without them these values.
+
+        :return: name -> neutral value
+        """
+        return {}
+
+    @classmethod
+    def _data_of_classes(cls, classes: list[type[MetaAlgorithm]]) -> dict[str, tuple[type[MetaAlgorithm], Any]]:
+        """The :meth:`_added_data` of ``classes`` (those that define it): name -> (the class, the neutral value)."""
+        return {
+            name: (algorithm, value)
+            for algorithm in classes
+            if "_added_data" in vars(algorithm)
+            for name, value in algorithm._added_data().items()
+        }
+
+    @classmethod
+    def _foreign_data(cls) -> dict[str, tuple[type[MetaAlgorithm], Any]]:
+        """The entries that subclasses add (:meth:`_added_data`) and this class does not own: its ``load`` drops them."""
+        subclasses: list[type[MetaAlgorithm]] = []
+        pending = cls.__subclasses__()
+        while pending:
+            subclasses.append(pending.pop())
+            pending.extend(subclasses[-1].__subclasses__())
+        own = cls._data_of_classes([c for c in cls.__mro__ if issubclass(c, MetaAlgorithm)])
+        return {name: entry for name, entry in cls._data_of_classes(subclasses).items() if name not in own}
+
+    @classmethod
+    def _refuse_foreign_overrides(cls, overrides: Mapping[str, Any], source: str) -> None:
+        """
+        A ``load`` keyword or ``custom_objects`` entry that only a subclass has (e.g. ``prior_coef`` given to
+        ``PEARL.load``) is refused: this class has no such setting.
+
+        :param overrides: the ``custom_objects`` and ``load`` keywords by name
+        :param source: the model file, for the message
+        """
+        for name, (owner, _) in cls._foreign_data().items():
+            if name in overrides:
+                raise ValueError(
+                    f"{source}: {name}={overrides[name]!r} is a setting of {owner.__name__}, which {cls.__name__} does not "
+                    f"have: a {owner.__name__} model loads with {owner.__name__}.load"
+                )
+
+    def _settle_added_data(self, held: Mapping[str, Any] | None, overrides: Mapping[str, Any]) -> None:
+        """
+        After SB3's load: drop the entries of subclasses that a zip of this class may hold with their neutral values
+        (:meth:`_foreign_data`), and give this class's own added entries (:meth:`_added_data`) their neutral values
+        where the zip (a parent's) does not hold them.
+
+        :param held: the zip's data (None: unknown)
+        :param overrides: the ``load`` keywords (they win)
+        """
+        for name in type(self)._foreign_data():
+            self.__dict__.pop(name, None)
+        if held is None:
+            return
+        own = type(self)._data_of_classes([c for c in type(self).__mro__ if issubclass(c, MetaAlgorithm)])
+        for name, (_, value) in own.items():
+            if name not in held and name not in overrides:
+                setattr(self, name, value)
 
     @classmethod
     def _variant_of(cls, data: dict[str, Any]) -> str | None:
@@ -501,4 +615,10 @@ class MetaAlgorithm(BaseAlgorithm):
         )
 
 
-__all__ = ["MetaAlgorithm", "SelfMetaAlgorithm", "check_observed_transition", "check_task_arguments"]
+__all__ = [
+    "MetaAlgorithm",
+    "SelfMetaAlgorithm",
+    "check_observed_transition",
+    "check_task_arguments",
+    "forwards_arguments_to",
+]

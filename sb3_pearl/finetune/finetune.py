@@ -29,7 +29,12 @@ from stable_baselines3.sac.policies import SACPolicy
 from sb3_pearl.common.adaptation import stored_action
 from sb3_pearl.common.checks import check_int, check_real
 from sb3_pearl.common.divergence import check_env_step
-from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
+from sb3_pearl.common.meta_algorithm import (
+    MetaAlgorithm,
+    check_observed_transition,
+    check_task_arguments,
+    forwards_arguments_to,
+)
 from sb3_pearl.common.persistence import (
     IncompleteReplayBufferError,
     check_buffer_tasks,
@@ -72,6 +77,7 @@ def check_finetune_arguments(arguments: Mapping[str, Any]) -> None:
         check_int("max_episode_steps", args["max_episode_steps"], 1, hint="or None: the env's registered time limit")
 
 
+@forwards_arguments_to(DiscreteSAC)
 class FineTune(MetaAlgorithm, DiscreteSAC):
     """
     Fine-Tune baseline: SAC trained on the mixture of the training tasks, fine-tuned on a new task.

@@ -25,6 +25,7 @@ from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from stable_baselines3.sac.policies import SACPolicy
 
+from sb3_pearl.common.meta_algorithm import forwards_arguments_to
 from sb3_pearl.envs.task_observation import TaskObservation
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune.discrete_sac import DiscreteSACPolicy
@@ -54,6 +55,7 @@ def with_task_observation(env: gym.Env | VecEnv) -> gym.Env | VecEnv:
     return TaskObservation(env)
 
 
+@forwards_arguments_to(FineTune, refused=_FINE_TUNING_KWARGS)
 class Oracle(FineTune):
     """
     Task-aware SAC: Fine-Tune's meta-training with the true task appended to the observation, no adaptation.

@@ -15,6 +15,7 @@ from sb3_pearl.common.checks import (
     check_tau,
 )
 from sb3_pearl.common.meta_algorithm import check_task_arguments
+from sb3_pearl.pearl.policies import check_latent_dim
 
 PARTIAL_ITERATION_MODES = ("train", "carry")
 
@@ -35,7 +36,6 @@ def check_pearl_arguments(arguments: Mapping[str, Any]) -> None:
         ("batch_size", "RL transitions per task in a gradient step"),
         ("embedding_batch_size", "context transitions per task in a gradient step"),
         ("buffer_size", "RL transitions kept per task"),
-        ("latent_dim", "size of z"),
         ("num_tasks_sample", "tasks visited per iteration"),
     ):
         check_int(name, args[name], 1, hint)
@@ -52,6 +52,7 @@ def check_pearl_arguments(arguments: Mapping[str, Any]) -> None:
         raise ValueError(
             "num_steps_prior + num_steps_posterior must be > 0: they fill the context buffer the encoder trains on"
         )
+    check_latent_dim(args["latent_dim"])  # the policy's check, before anything is built
     check_learning_rate("learning_rate", args["learning_rate"])
     check_gamma(args["gamma"])
     check_tau(args["tau"])

@@ -1,8 +1,8 @@
 """The losses of one PEARL / PEARL+ gradient step (Algorithm 1 of the paper), for T tasks at once.
 
 Every network runs once per step on the rows of all tasks, shaped ``(T * B, ...)``. The losses
-touch disjoint parameter sets, so their sum (:meth:`PEARL._total_loss`) back-propagated once gives
-every optimizer its own gradient:
+touch disjoint parameter sets, so their sum (:meth:`PEARL._total_loss`; PEARL+'s adds its prior terms) back-propagated
+once gives every optimizer its own gradient:
 
 - KL(q(z|c) || N(0, I)) and the critic loss reach the encoder (and the critic), nothing else does;
 - the prior critic's soft Bellman loss under z0 reaches the prior critic only (with ``prior_data="prior"``, on the
@@ -39,15 +39,19 @@ from sb3_pearl.pearl.policies import PEARLPolicy
 
 
 class LossSettings(NamedTuple):
-    """The coefficients and switches of a gradient step: the model's settings (:meth:`PEARL._loss_settings`)."""
+    """
+    The coefficients and switches of a gradient step: the model's settings (:meth:`PEARL._loss_settings`). The prior
+    term's switches are PEARL+'s (:meth:`PEARLPlus._loss_settings <sb3_pearl.PEARLPlus>` sets them); their defaults
+    are PEARL's: no prior term.
+    """
 
     gamma: float  # discount factor
     reward_scale: float  # rewards are multiplied by it in the critic targets
-    prior_term: bool  # the actor is also trained on z0 (PEARL+ with prior_coef > 0)
-    prior_data: str  # the replay rows the prior terms use: "all" or "prior" (collected with z from the prior)
-    prior_target: str  # the prior critic's target: "prior" (its own target network), "main" (the critic's) or "mc"
-    prior_conservative_weight: float  # weight of the prior critic's conservative (CQL) penalty; 0: off
     target_entropy: float  # target of a learned entropy coefficient
+    prior_term: bool = False  # the actor is also trained on z0 (PEARL+ with prior_coef > 0)
+    prior_data: str = "all"  # the replay rows the prior terms use: "all" or "prior" (collected with z from the prior)
+    prior_target: str = "prior"  # the prior critic's target: "prior" (its own target network), "main" (the critic's) or "mc"
+    prior_conservative_weight: float = 0.0  # weight of the prior critic's conservative (CQL) penalty; 0: off
 
 
 def compute_losses(

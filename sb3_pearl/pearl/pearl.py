@@ -1,4 +1,4 @@
-"""PEARL (Rakelly et al. 2019, arXiv:1903.08254) and PEARL+ (Wen et al. 2021, arXiv:2108.08448: PEARL plus a prior term).
+"""PEARL (Rakelly et al. 2019, arXiv:1903.08254): off-policy meta-RL with probabilistic context variables.
 
 ``train()`` follows Algorithm 1 of the paper, vectorised over the ``meta_batch`` tasks: every
 network runs once per gradient step on the rows of all tasks, shaped ``(T * B, ...)``.
@@ -28,7 +28,7 @@ from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.callbacks import gradient_step_event
 from sb3_pearl.common.divergence import NonFiniteUpdateGuard, check_env_step, check_finite_actions
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition
-from sb3_pearl.common.networks import polyak_update_foreach
+from sb3_pearl.common.networks import CategoricalActor, LatentCritic, SquashedGaussianActor, polyak_update_foreach
 from sb3_pearl.common.persistence import check_buffer_tasks, read_replay_buffer, save_replay_buffer_file, saved_arguments
 from sb3_pearl.common.precision import resolve_bf16
 from sb3_pearl.common.tasks import set_vec_env_task
@@ -38,7 +38,7 @@ from sb3_pearl.pearl.arguments import check_pearl_arguments
 from sb3_pearl.pearl.collection import OpenIteration, Segment, requeue_open_segments, start_piece
 from sb3_pearl.pearl.gradient_conflict import record_gradient_conflict
 from sb3_pearl.pearl.losses import LossSettings, compute_losses
-from sb3_pearl.pearl.policies import PEARLPolicy
+from sb3_pearl.pearl.policies import ContextEncoder, PEARLPolicy
 from sb3_pearl.pearl.returns import PendingPiece, piece_returns
 
 SelfPEARL = TypeVar("SelfPEARL", bound="PEARL")
@@ -50,9 +50,11 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
 
     A context encoder infers q(z | c) from a task's transitions (product of Gaussians with a KL
     bottleneck to N(0, I)); a soft actor-critic conditioned on z acts and learns. The encoder is
-    trained by the critic loss and the KL only. :class:`PEARLPlus` extends it with the paper's
-    prior-regularisation term; ``train()`` follows the paper's Algorithm 1, whose prior lines run only
-    when :attr:`uses_prior_term` (``prior_coef > 0``): for PEARL they are skipped.
+    trained by the critic loss and the KL only. ``train()`` follows the paper's Algorithm 1.
+    :class:`PEARLPlus` adds the paper's prior-regularisation term through hooks this class calls without
+    knowing what they add: the loss settings handed to the one loss step (:meth:`_loss_settings`), the
+    sum of the losses (:meth:`_total_loss`), the target networks (:meth:`_target_pairs`), the networks
+    (:attr:`networks`) and what is saved (:meth:`_get_torch_save_params`).
 
     All losses touch disjoint parameter sets, so one backward pass serves every optimizer; the actor
     terms see the critics through frozen parameters (gradients reach the actor only) and, unlike the
@@ -102,8 +104,9 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
         slower than float32, so ``True`` warns and trains in float32, ``"force"`` uses bfloat16 anyway
         (:mod:`sb3_pearl.common.precision`; the speed and learning figures: docs/pearl.md, docs/speed.md)
     :param grad_conflict_log_freq: every this many gradient steps, log ``train/grad_conflict_ratio``
-        (``||prior_coef * grad prior term|| / ||grad posterior term||`` on the actor parameters) and
-        ``train/grad_conflict_cos`` (their cosine) from that step's losses (docs/diagnostics.md); 0: off
+        (the weighted gradient of the actor's second term against its first on the actor parameters: 0 for PEARL,
+        whose actor has one term; PEARL+'s prior term) and ``train/grad_conflict_cos`` (their cosine) from that
+        step's losses (docs/diagnostics.md); 0: off
     :param partial_iteration: when a ``learn`` budget ends inside an iteration: ``"train"`` (default, the protocol of
         the committed results) trains the collected share, so that short runs train; ``"carry"`` keeps the iteration
         open (saved with the model) for the next ``learn``, so a run split anywhere is bit-identical to the unsplit
@@ -125,10 +128,12 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
     max_consecutive_nonfinite_updates: ClassVar[int] = 10
     policy: PEARLPolicy
     replay_buffer: MetaReplayBuffer  # type: ignore[assignment]
-    # PEARL+'s settings; PEARL has no prior term (PEARLPlus sets them per instance before _setup_model).
-    prior_coef, prior_critic_mode, prior_data = 0.0, "none", "all"
-    prior_target, prior_conservative_weight = "prior", 0.0  # the prior-critic designs (PEARLPlus, docs/pearl.md)
-    prior_return_steps = 0  # n of the prior critic's n-step returns with prior_target="mc" (0: Monte-Carlo)
+    # The policy's networks the model names as attributes (SB3's aliases; never saved apart from the policy).
+    networks: ClassVar[tuple[str, ...]] = ("encoder", "actor", "critic", "critic_target")
+    encoder: ContextEncoder
+    actor: SquashedGaussianActor | CategoricalActor
+    critic: LatentCritic
+    critic_target: LatentCritic
     # Called after every gradient step of train() while set (the progress callback sets it during learn()); never saved.
     gradient_step_callback: Callable[[], None] | None = None
     # The callbacks of the running learn(): told of every gradient step (gradient_step_event), never saved.
@@ -199,8 +204,6 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             supported_action_spaces=None,  # checked by _init_meta_algorithm with a ValueError
         )
         self._init_meta_algorithm(n_train_tasks, n_test_tasks, train_tasks, test_tasks)
-        # Saved with the model: PEARL keeps the class defaults (no prior term), PEARLPlus sets its own after this.
-        self.prior_coef, self.prior_critic_mode, self.prior_data = self.prior_coef, self.prior_critic_mode, self.prior_data
         self.kl_weight = kl_weight
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
@@ -220,11 +223,7 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
         self.n_iterations = 0
         self.log_ent_coef: th.Tensor | None = None
         self.ent_coef_optimizer: th.optim.Adam | None = None
-        self.policy_kwargs.update(
-            latent_dim=latent_dim,
-            use_next_obs_in_context=use_next_obs_in_context,
-            prior_critic="none",  # PEARL has none; PEARLPlus sets its own
-        )
+        self.policy_kwargs.update(latent_dim=latent_dim, use_next_obs_in_context=use_next_obs_in_context)
         if encoder_arch is not None:
             self.policy_kwargs["encoder_arch"] = encoder_arch
         self._adapt_context: list[tuple[np.ndarray, np.ndarray, float, np.ndarray]] = []
@@ -235,11 +234,6 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
     def latent_dim(self) -> int:
         """Size of z."""
         return self.policy.latent_dim
-
-    @property
-    def uses_prior_term(self) -> bool:
-        """Whether the actor is also trained on prior latents z0 (PEARL+ with ``prior_coef > 0``)."""
-        return self.prior_coef > 0
 
     # ------------------------------------------------------------------------------------------
     # Set-up
@@ -268,12 +262,8 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
         self.reset_adaptation()
 
     def _create_aliases(self) -> None:
-        self.encoder = self.policy.encoder
-        self.actor = self.policy.actor
-        self.critic = self.policy.critic
-        self.critic_target = self.policy.critic_target
-        self.prior_critic = self.policy.prior_critic
-        self.prior_critic_target = self.policy.prior_critic_target
+        for name in self.networks:
+            setattr(self, name, getattr(self.policy, name))
 
     def _setup_entropy(self) -> None:
         if self.target_entropy == "auto":
@@ -304,15 +294,7 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
     def _loss_settings(self) -> LossSettings:
         """The coefficients and switches of a gradient step, read at each step (they may change between ``learn`` calls)."""
         assert isinstance(self.target_entropy, float), "target_entropy is resolved by _setup_model"
-        return LossSettings(
-            gamma=self.gamma,
-            reward_scale=self.reward_scale,
-            prior_term=self.uses_prior_term,
-            prior_data=self.prior_data,
-            prior_target=self.prior_target,
-            prior_conservative_weight=self.prior_conservative_weight,
-            target_entropy=self.target_entropy,
-        )
+        return LossSettings(gamma=self.gamma, reward_scale=self.reward_scale, target_entropy=self.target_entropy)
 
     def sample_posterior(self, context: th.Tensor, sample: bool = True) -> PosteriorSample:
         """
@@ -329,7 +311,8 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
     def _compute_losses(self, replay: MetaReplaySamples, context: th.Tensor, z0: th.Tensor) -> PEARLLosses:
         """
         The losses of one gradient step for T tasks (:func:`sb3_pearl.pearl.losses.compute_losses`): task inference
-        q(z | c) on each task's context, then the critic, prior critic, actor and entropy losses.
+        q(z | c) on each task's context, then the critic, actor and entropy losses (and the terms the settings of
+        :meth:`_loss_settings` switch on: PEARL+'s prior terms, in the same pass, from the same random draws).
 
         :param replay: RL batch, tensors of leading shape (T, B)
         :param context: context transitions (T, N, context_dim)
@@ -346,11 +329,22 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             settings=self._loss_settings(),
         )
 
-    @staticmethod
-    def _named_losses(losses: PEARLLosses) -> dict[str, th.Tensor]:
-        """The losses of a step by name (the divergence guard's message)."""
-        names = ("critic_loss", "kl_loss", "prior_critic_loss", "actor_loss", "prior_actor_loss", "ent_coef_loss", "ent_coef")
+    def _named_losses(self, losses: PEARLLosses) -> dict[str, th.Tensor]:
+        """The losses of a step by name, in the order of the total loss (the divergence guard's message)."""
+        names = ("critic_loss", "kl_loss", "actor_loss", "ent_coef_loss", "ent_coef")
         return {name: getattr(losses, name) for name in names}
+
+    def _logged_losses(self, losses: PEARLLosses) -> dict[str, th.Tensor]:
+        """The values of a step logged as ``train/<name>`` (their means over the steps of a ``train()`` call)."""
+        return {
+            "critic_loss": losses.critic_loss,
+            "kl": losses.kl_loss,
+            "actor_loss": losses.actor_loss,
+            "ent_coef": losses.ent_coef,
+            "ent_coef_loss": losses.ent_coef_loss,
+            "z_mean_abs": losses.z_mean.abs().mean(),
+            "z_var": losses.z_var.mean(),
+        }
 
     def _divergence_settings(self) -> dict[str, Any]:
         """The settings the divergence guard names as likely fixes."""
@@ -358,18 +352,24 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             "learning_rate": self.lr_schedule(self._current_progress_remaining),
             "reward_scale": self.reward_scale,
             "kl_weight": self.kl_weight,
-            "prior_coef": self.prior_coef,
         }
 
     def _total_loss(self, losses: PEARLLosses) -> th.Tensor:
-        return (
-            losses.critic_loss
-            + self.kl_weight * losses.kl_loss
-            + losses.prior_critic_loss
-            + losses.actor_loss
-            + self.prior_coef * losses.prior_actor_loss
-            + losses.ent_coef_loss
-        )
+        """The sum of the step's losses, back-propagated once (each reaches only its own networks)."""
+        return losses.critic_loss + self.kl_weight * losses.kl_loss + losses.actor_loss + losses.ent_coef_loss
+
+    def _returns_horizon(self) -> int | None:
+        """
+        Whether collection records the Monte-Carlo returns of the rows collected with z from the prior
+        (:mod:`sb3_pearl.pearl.returns`), and their horizon: None (PEARL): none; ``n`` > 0: n-step returns; 0: each
+        to the end of its trajectory (PEARL+'s ``prior_target="mc"``).
+        """
+        return None
+
+    def _actor_second_term_weight(self) -> float:
+        """The weight of the actor's second loss term in the total loss, for the gradient conflict's log: 0, PEARL's
+        actor has one term (PEARL+: its prior term's ``prior_coef``)."""
+        return 0.0
 
     def _sample_context(self, tasks: np.ndarray) -> th.Tensor:
         """``embedding_batch_size`` context transitions of each task, (len(tasks), N, context_dim)."""
@@ -383,20 +383,17 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             raise RuntimeError("no training task holds data yet: collect before training")
         tasks = np.random.choice(candidates, size=self.meta_batch, replace=len(candidates) < self.meta_batch)
         replay = self.replay_buffer.rl.sample(
-            tasks, batch_size or self.batch_size, self.device, returns=self.prior_target == "mc"
+            tasks, batch_size or self.batch_size, self.device, returns=self._returns_horizon() is not None
         )
         context = self._sample_context(tasks)
-        z0 = th.randn(len(tasks), self.latent_dim, device=self.device)  # one prior z per task
+        # One z ~ N(0, I) per task: the prior terms' z0 where the loss settings switch them on; drawn in every model, so
+        # that PEARL and PEARL+ share one random stream.
+        z0 = th.randn(len(tasks), self.latent_dim, device=self.device)
         return replay, context, z0
 
     def _target_pairs(self) -> tuple[list[th.Tensor], list[th.Tensor]]:
         """The critics' parameters and, in the same order, their target networks' (Polyak-averaged after every step)."""
-        sources: list[th.Tensor] = [*self.critic.parameters()]
-        targets: list[th.Tensor] = [*self.critic_target.parameters()]
-        if self.prior_critic is not None and self.prior_critic_target is not None:
-            sources += self.prior_critic.parameters()
-            targets += self.prior_critic_target.parameters()
-        return sources, targets
+        return [*self.critic.parameters()], [*self.critic_target.parameters()]
 
     def _count_gradient_step(self) -> None:
         """One gradient step done: ``_n_updates``, and, inside ``learn()``, the iteration's steps still to train."""
@@ -434,11 +431,13 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             steps_done += 1
             # Sample meta_batch training tasks: each task's RL batch b, context c and one prior latent z0.
             replay, context, z0 = self._sample_meta_batch(batch_size)
-            # Infer z ~ q(z | c) from each context, then the losses: critic, KL, actor and entropy (and the prior terms).
+            # Infer z ~ q(z | c) from each context, then the losses: critic, KL, actor and entropy (and what the loss
+            # settings switch on).
             with th.autocast(device_type=self.device.type, dtype=th.bfloat16, enabled=self._bf16_enabled):
                 losses = self._compute_losses(replay, context, z0)
             if self.grad_conflict_log_freq > 0 and self._n_updates % self.grad_conflict_log_freq == 0:
-                record_gradient_conflict(self.actor, self.prior_coef, losses, logs)  # two extra actor-only backward passes
+                # two extra actor-only backward passes
+                record_gradient_conflict(self.actor, self._actor_second_term_weight(), losses, logs)
             # The updates: one backward pass serves every optimizer (the losses touch disjoint parameters).
             for optimizer in optimizers:
                 optimizer.zero_grad(set_to_none=True)
@@ -456,17 +455,7 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             self._count_gradient_step()  # counted once the step's work is done: a save between steps sees it whole
             if self.gradient_step_callback is not None:
                 self.gradient_step_callback()
-            for key, value in (
-                ("critic_loss", losses.critic_loss),
-                ("kl", losses.kl_loss),
-                ("prior_critic_loss", losses.prior_critic_loss),
-                ("actor_loss", losses.actor_loss),
-                ("prior_actor_loss", losses.prior_actor_loss),
-                ("ent_coef", losses.ent_coef),
-                ("ent_coef_loss", losses.ent_coef_loss),
-                ("z_mean_abs", losses.z_mean.abs().mean()),
-                ("z_var", losses.z_var.mean()),
-            ):
+            for key, value in self._logged_losses(losses).items():
                 logs.setdefault(key, []).append(float(value.item()))
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
@@ -664,7 +653,7 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
         n_envs = env.num_envs
         obs = np.array(self._last_obs, dtype=np.float32)  # type: ignore[arg-type]
         z = th.as_tensor(state.z, device=self.device)
-        returns = self.prior_target == "mc"  # the prior-z rows get Monte-Carlo returns (sb3_pearl.pearl.returns)
+        returns = self._returns_horizon() is not None  # the prior-z rows get Monte-Carlo returns (sb3_pearl.pearl.returns)
         continue_training = True
         while True:
             for slot in range(n_envs):
@@ -773,9 +762,10 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
             return
         buffer = self.replay_buffer.rl
         rows = np.asarray(piece.rows, dtype=np.int64)
-        returns = piece_returns(
-            buffer.rewards[piece.task, rows, 0], np.asarray(piece.log_probs), self.gamma, terminated, self.prior_return_steps
-        )
+        horizon = self._returns_horizon()
+        assert horizon is not None, "pieces are opened only when returns are recorded"
+        rewards, log_probs = buffer.rewards[piece.task, rows, 0], np.asarray(piece.log_probs)
+        returns = piece_returns(rewards, log_probs, self.gamma, terminated, horizon)
         buffer.write_returns(piece.task, rows, returns.reward_sum, returns.log_prob_sum, returns.discount, rows[returns.tail])
 
     # ------------------------------------------------------------------------------------------
@@ -839,9 +829,8 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
     # Save / load
     # ------------------------------------------------------------------------------------------
     def _excluded_save_params(self) -> list[str]:
-        networks = ["encoder", "actor", "critic", "critic_target", "prior_critic", "prior_critic_target"]
         unsaved = ["_adapt_context", "_update_guard", "_bf16_enabled", "gradient_step_callback", "_learn_callback"]
-        return [*super()._excluded_save_params(), *networks, *unsaved]
+        return [*super()._excluded_save_params(), *self.networks, *unsaved]
 
     def set_parameters(
         self,
@@ -861,19 +850,20 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
         self.policy.restore_fused_optimizers()
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts = ["policy", "encoder.optimizer", "actor.optimizer", "critic.optimizer"]
-        if self.prior_critic is not None:
-            state_dicts.append("prior_critic.optimizer")
+        state_dicts = ["policy", *(f"{name}.optimizer" for name in self._optimized_networks())]
         if self.ent_coef_optimizer is not None:
             return [*state_dicts, "ent_coef_optimizer"], ["log_ent_coef"]
         return state_dicts, ["ent_coef_tensor"]
+
+    def _optimized_networks(self) -> list[str]:
+        """The networks with an optimizer of their own (saved with the model), in the policy's order."""
+        return ["encoder", "actor", "critic"]
 
     @classmethod
     def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
         """
         The constructor's checks (:func:`~sb3_pearl.pearl.arguments.check_pearl_arguments`) on a loaded model's
-        hyperparameters (``latent_dim`` and ``encoder_arch`` are kept in ``policy_kwargs``), then the prior term's
-        (:meth:`_check_saved_prior_arguments`).
+        hyperparameters (``latent_dim`` and ``encoder_arch`` are kept in ``policy_kwargs``).
 
         :param saved: the attributes by name
         """
@@ -881,22 +871,6 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
         policy_kwargs = policy_kwargs if isinstance(policy_kwargs, dict) else {}
         derived = {key: policy_kwargs[key] for key in ("latent_dim", "encoder_arch") if key in policy_kwargs}
         check_pearl_arguments(saved_arguments(PEARL.__init__, saved, **derived))
-        cls._check_saved_prior_arguments(saved)
-
-    @classmethod
-    def _check_saved_prior_arguments(cls, saved: Mapping[str, Any]) -> None:
-        """
-        PEARL has no prior term: its ``prior_coef`` (saved with every model) must stay 0 (:class:`PEARLPlus` checks its
-        own prior settings).
-
-        :param saved: the attributes by name
-        """
-        prior_coef = saved.get("prior_coef", 0.0)
-        if prior_coef != 0.0:  # a nan too
-            raise ValueError(
-                f"prior_coef must be 0 for PEARL (it has no prior term), got {prior_coef!r}: a PEARL+ model loads with "
-                "PEARLPlus.load"
-            )
 
     def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
         """

@@ -7,14 +7,19 @@ Pre-Adaptation of Meta Reinforcement Learning with Prior Regularization", arXiv:
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
+import torch as th
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_pearl.common.checks import check_arch, check_int, check_real
+from sb3_pearl.common.meta_algorithm import forwards_arguments_to
+from sb3_pearl.common.networks import LatentCritic
 from sb3_pearl.common.persistence import saved_arguments
+from sb3_pearl.common.type_aliases import PEARLLosses
+from sb3_pearl.pearl.losses import LossSettings
 from sb3_pearl.pearl.pearl import PEARL
-from sb3_pearl.pearl.policies import PRIOR_CRITIC_INPUTS, PRIOR_CRITIC_MODES, PEARLPolicy
+from sb3_pearl.pearl.policies import PRIOR_CRITIC_MODES, PEARLPolicy, check_prior_critic
 
 SelfPEARLPlus = TypeVar("SelfPEARLPlus", bound="PEARLPlus")
 
@@ -38,18 +43,12 @@ def check_pearl_plus_arguments(arguments: Mapping[str, Any]) -> None:
     check_real("prior_coef", prior_coef, 0.0, hint="the paper's alpha, default 0.1; 0 gives PEARL")
     check_arch("prior_critic_arch", arguments["prior_critic_arch"])
     check_int("prior_n_critics", arguments["prior_n_critics"], 1, hint="Q networks of the prior critic")
-    modes = tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none")
-    if prior_critic not in modes:
-        raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {modes} (PEARL has none)")
+    # The policy's checks, before anything is built; a PEARL+ model has a prior term ("none" is PEARL's).
+    check_prior_critic(prior_critic, prior_critic_input, modes=tuple(mode for mode in PRIOR_CRITIC_MODES if mode != "none"))
     if prior_data not in PRIOR_DATA_MODES:
         raise ValueError(
             f"unknown prior_data {prior_data!r}: expected one of {PRIOR_DATA_MODES} (the replay rows the prior terms "
             "use: all of them, as in the paper, or only those collected with z from the prior)"
-        )
-    if prior_critic_input not in PRIOR_CRITIC_INPUTS:
-        raise ValueError(
-            f"unknown prior_critic_input {prior_critic_input!r}: expected one of {PRIOR_CRITIC_INPUTS} "
-            "(the paper's Q~(s, a, z0), or a z-free Q~(s, a))"
         )
     if prior_target not in PRIOR_TARGETS:
         raise ValueError(
@@ -72,6 +71,19 @@ def check_pearl_plus_arguments(arguments: Mapping[str, Any]) -> None:
         )
 
 
+def _with_prior_terms(values: dict[str, th.Tensor], losses: PEARLLosses, kl_key: str) -> dict[str, th.Tensor]:
+    """
+    PEARL's losses of a step by name, with PEARL+'s two prior terms in the order of the total loss: the prior critic's
+    after the KL (named ``kl_key``), the actor's after the actor's.
+    """
+    items = list(values.items())
+    for after, name in ((kl_key, "prior_critic_loss"), ("actor_loss", "prior_actor_loss")):
+        at = [key for key, _ in items].index(after) + 1
+        items.insert(at, (name, getattr(losses, name)))
+    return dict(items)
+
+
+@forwards_arguments_to(PEARL)
 class PEARLPlus(PEARL):
     """
     PEARL+ : PEARL with a prior-regularisation term (Algorithm 1 of the paper).
@@ -110,13 +122,22 @@ class PEARLPlus(PEARL):
         policy's actions minus Q~ at the stored actions (0: off, the paper; docs/pearl.md)
     :param _init_setup_model: build the networks at construction
     :param kwargs: every other argument is :class:`PEARL`'s (``learning_rate``, ``latent_dim``, ``kl_weight``,
-        ``n_train_tasks``, ``meta_batch``, ``policy_kwargs``, ``seed``, ...), passed by name, with its defaults
+        ``n_train_tasks``, ``meta_batch``, ``policy_kwargs``, ``seed``, ...), passed by name, with its defaults;
+        ``inspect.signature(PEARLPlus)`` lists them with PEARL+'s own
 
     The prior-critic designs compared in docs/pearl.md ("Prior-critic designs") combine ``prior_n_critics`` (2: twin
     minimum; 5: a pessimistic ensemble), ``prior_data``, ``prior_critic_input``, ``prior_target`` (with
     ``prior_return_steps``) and ``prior_conservative_weight``; every default is the paper's form. None is recommended:
     the pre-written selection on SafePointGoal found no design calibrated (docs/pearl.md, "What the selection found").
+
+    PEARL+ adds to PEARL through the hooks PEARL's ``train()`` and ``save`` call: its settings and rows enter the one
+    loss step (:meth:`_loss_settings`: one actor pass over the posterior and prior rows, one random draw), its terms
+    the sum (:meth:`_total_loss`), its prior critic the networks, the target pairs and the saved optimizers.
     """
+
+    networks: ClassVar[tuple[str, ...]] = (*PEARL.networks, "prior_critic", "prior_critic_target")
+    prior_critic: LatentCritic | None  # None with prior_critic="shared" or prior_coef=0
+    prior_critic_target: LatentCritic | None
 
     def __init__(
         self,
@@ -155,6 +176,70 @@ class PEARLPlus(PEARL):
         if _init_setup_model:
             self._setup_model()
 
+    @property
+    def uses_prior_term(self) -> bool:
+        """Whether the actor is also trained on prior latents z0 (``prior_coef > 0``)."""
+        return self.prior_coef > 0
+
+    # ------------------------------------------------------------------------------------------
+    # The hooks of PEARL's gradient step: the prior terms, in PEARL's one loss step
+    # ------------------------------------------------------------------------------------------
+    def _loss_settings(self) -> LossSettings:
+        settings = super()._loss_settings()
+        return settings._replace(
+            prior_term=self.uses_prior_term,
+            prior_data=self.prior_data,
+            prior_target=self.prior_target,
+            prior_conservative_weight=self.prior_conservative_weight,
+        )
+
+    def _total_loss(self, losses: PEARLLosses) -> th.Tensor:
+        return (
+            losses.critic_loss
+            + self.kl_weight * losses.kl_loss
+            + losses.prior_critic_loss
+            + losses.actor_loss
+            + self.prior_coef * losses.prior_actor_loss
+            + losses.ent_coef_loss
+        )
+
+    def _target_pairs(self) -> tuple[list[th.Tensor], list[th.Tensor]]:
+        sources, targets = super()._target_pairs()
+        if self.prior_critic is not None and self.prior_critic_target is not None:
+            sources += self.prior_critic.parameters()
+            targets += self.prior_critic_target.parameters()
+        return sources, targets
+
+    def _returns_horizon(self) -> int | None:
+        return self.prior_return_steps if self.prior_target == "mc" else None
+
+    def _actor_second_term_weight(self) -> float:
+        return self.prior_coef
+
+    def _named_losses(self, losses: PEARLLosses) -> dict[str, th.Tensor]:
+        return _with_prior_terms(super()._named_losses(losses), losses, "kl_loss")
+
+    def _logged_losses(self, losses: PEARLLosses) -> dict[str, th.Tensor]:
+        return _with_prior_terms(super()._logged_losses(losses), losses, "kl")
+
+    def _divergence_settings(self) -> dict[str, Any]:
+        return {**super()._divergence_settings(), "prior_coef": self.prior_coef}
+
+    def _optimized_networks(self) -> list[str]:
+        return [*super()._optimized_networks(), *(["prior_critic"] if self.prior_critic is not None else [])]
+
+    # ------------------------------------------------------------------------------------------
+    # Save / load
+    # ------------------------------------------------------------------------------------------
+    @classmethod
+    def _added_data(cls) -> dict[str, Any]:
+        """
+        PEARL+'s saved settings that PEARL models saved before the two classes were split hold too, with PEARL's values.
+
+        :return: name -> the value that stands for no prior term
+        """
+        return {"prior_coef": 0.0, "prior_critic_mode": "none", "prior_data": "all"}
+
     @classmethod
     def _variant_of(cls, data: dict[str, Any]) -> str | None:
         """
@@ -170,14 +255,15 @@ class PEARLPlus(PEARL):
         return f"a PEARL+ model (prior_coef={prior_coef}, prior_critic={mode!r})"
 
     @classmethod
-    def _check_saved_prior_arguments(cls, saved: Mapping[str, Any]) -> None:
+    def _check_saved_arguments(cls, saved: Mapping[str, Any]) -> None:
         """
-        :func:`check_pearl_plus_arguments` on a loaded model's prior settings (``prior_critic`` is saved as
-        ``prior_critic_mode``, its architecture and inputs in ``policy_kwargs``). A PEARL model (no prior critic,
-        ``prior_coef`` 0), which ``PEARLPlus.load`` takes, has no prior setting to check.
+        PEARL's checks, then :func:`check_pearl_plus_arguments` on a loaded model's prior settings (``prior_critic`` is
+        saved as ``prior_critic_mode``, its architecture and inputs in ``policy_kwargs``). A PEARL model (no prior
+        critic, ``prior_coef`` 0), which ``PEARLPlus.load`` takes, has no prior setting to check.
 
         :param saved: the attributes by name
         """
+        super()._check_saved_arguments(saved)
         mode, prior_coef = saved.get("prior_critic_mode", "none"), saved.get("prior_coef", 0.0)
         if mode == "none" and prior_coef == 0.0:
             return

@@ -18,6 +18,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
+from sb3_pearl.common.checks import check_int
 from sb3_pearl.common.context import product_of_gaussians
 from sb3_pearl.common.networks import (
     CategoricalActor,
@@ -31,6 +32,34 @@ from sb3_pearl.common.networks import (
 
 PRIOR_CRITIC_MODES = ("separate", "shared", "none")
 PRIOR_CRITIC_INPUTS = ("state_z0", "state")
+
+
+def check_latent_dim(latent_dim: int) -> None:
+    """
+    Raise a ValueError unless ``latent_dim`` (the size of z) is an integer >= 1: the policy's check, which
+    :func:`~sb3_pearl.pearl.arguments.check_pearl_arguments` runs before anything is built.
+
+    :param latent_dim: size of z
+    """
+    check_int("latent_dim", latent_dim, 1, "size of z")
+
+
+def check_prior_critic(prior_critic: str, prior_critic_input: str, modes: tuple[str, ...] = PRIOR_CRITIC_MODES) -> None:
+    """
+    Raise a ValueError for an unknown prior-critic mode or input: the policy's check, which PEARL+'s argument checks run
+    before anything is built, with its own modes (a PEARL+ model has a prior term: not ``"none"``).
+
+    :param prior_critic: the prior-critic mode
+    :param prior_critic_input: ``"state_z0"`` or ``"state"``
+    :param modes: the modes allowed
+    """
+    if prior_critic not in modes:
+        raise ValueError(f"unknown prior_critic mode {prior_critic!r}: expected one of {modes}")
+    if prior_critic_input not in PRIOR_CRITIC_INPUTS:
+        raise ValueError(
+            f"unknown prior_critic_input {prior_critic_input!r}: expected one of {PRIOR_CRITIC_INPUTS} "
+            "(the paper's Q~(s, a, z0), or a z-free Q~(s, a))"
+        )
 
 
 class ContextEncoder(nn.Module):
@@ -75,8 +104,8 @@ class PEARLPolicy(BasePolicy):
     :param latent_dim: size of z (reference: 5)
     :param encoder_arch: hidden sizes of the context encoder (reference: [200, 200, 200])
     :param use_next_obs_in_context: context transitions are (s, a, r, s') instead of (s, a, r)
-    :param prior_critic: ``"separate"`` (PEARL+: extra critic Q~(s, a, z0)), ``"shared"`` (ablation
-        PEARL+ (w/o): the prior term uses Q(s, a, z0)) or ``"none"`` (PEARL)
+    :param prior_critic: ``"none"`` (PEARL, the default), ``"separate"`` (PEARL+: extra critic Q~(s, a, z0)) or
+        ``"shared"`` (ablation PEARL+ (w/o): the prior term uses Q(s, a, z0)); PEARLPlus sets it
     :param prior_critic_arch: hidden sizes of the prior critic (paper: [300]*3, ablation [100]*3)
     :param n_critics: number of Q networks of the critic (twin Q: 2)
     :param prior_n_critics: number of Q networks of the prior critic; the paper adds "a new Q-network"
@@ -98,7 +127,7 @@ class PEARLPolicy(BasePolicy):
         latent_dim: int = 5,
         encoder_arch: list[int] | None = None,
         use_next_obs_in_context: bool = False,
-        prior_critic: str = "separate",
+        prior_critic: str = "none",
         prior_critic_arch: list[int] | None = None,
         n_critics: int = 2,
         prior_n_critics: int = 1,
@@ -110,12 +139,8 @@ class PEARLPolicy(BasePolicy):
             raise ValueError(f"PEARL needs a flat Box observation space of shape (obs_dim,), got {observation_space}")
         if not isinstance(action_space, (spaces.Box, spaces.Discrete)):
             raise ValueError(f"PEARL supports Box and Discrete action spaces, got {type(action_space).__name__}")
-        if prior_critic not in PRIOR_CRITIC_MODES:
-            raise ValueError(f"prior_critic must be one of {PRIOR_CRITIC_MODES}, got {prior_critic!r}")
-        if prior_critic_input not in PRIOR_CRITIC_INPUTS:
-            raise ValueError(f"prior_critic_input must be one of {PRIOR_CRITIC_INPUTS}, got {prior_critic_input!r}")
-        if latent_dim < 1:
-            raise ValueError(f"latent_dim must be >= 1, got {latent_dim}")
+        check_prior_critic(prior_critic, prior_critic_input)
+        check_latent_dim(latent_dim)
         super().__init__(
             observation_space,
             action_space,

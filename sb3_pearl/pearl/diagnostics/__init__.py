@@ -29,7 +29,7 @@ and :mod:`.gradients` (actor gradient conflict); this module combines and format
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -41,11 +41,10 @@ from sb3_pearl.pearl.diagnostics.gradients import actor_gradient_conflict, compu
 from sb3_pearl.pearl.diagnostics.overlap import CV_FOLDS as CV_FOLDS
 from sb3_pearl.pearl.diagnostics.overlap import KNN_NEIGHBOURS as KNN_NEIGHBOURS
 from sb3_pearl.pearl.diagnostics.overlap import compute_overlap, gaussian_classifier_auc, knn_classifier_auc, roc_auc
+from sb3_pearl.pearl.diagnostics.prior import PriorTerm, prior_term
 from sb3_pearl.pearl.diagnostics.rollouts import FixedZRollout, _collect_context, _posteriors, rollout_with_z
 from sb3_pearl.pearl.diagnostics.violations import compute_violations
-
-if TYPE_CHECKING:
-    from sb3_pearl.pearl.pearl import PEARL
+from sb3_pearl.pearl.pearl import PEARL
 
 DEFAULT_N_TASKS = 8
 DEFAULT_N_Z0 = 16
@@ -99,7 +98,7 @@ def compute_diagnostics(
     :param max_steps: cap on trajectory length (None: the env's horizon)
     :return: a JSON-serialisable dict with ``overlap``, ``violations``, ``calibration``, ``gradient_conflict``
     """
-    if not hasattr(model, "encoder") or not hasattr(model, "prior_coef"):
+    if not isinstance(model, PEARL):
         raise TypeError(f"compute_diagnostics needs a PEARL / PEARL+ model, got {type(model).__name__}")
     if min(n_tasks, n_z0, n_posterior_samples, n_grad_batches) < 1:
         raise ValueError("n_tasks, n_z0, n_posterior_samples and n_grad_batches must be >= 1")
@@ -129,8 +128,8 @@ def compute_diagnostics(
         grad_buffer = model.replay_buffer if use_model_buffer or fresh is None else fresh
         result = {
             "algorithm": type(model).__name__,
-            "prior_critic": model.prior_critic_mode,
-            "prior_coef": model.prior_coef,
+            "prior_critic": prior_term(model).critic_mode,
+            "prior_coef": prior_term(model).coef,
             "latent_dim": model.latent_dim,
             "num_timesteps": model.num_timesteps,
             "seed": seed,
@@ -219,6 +218,7 @@ def format_diagnostics(diagnostics: dict[str, Any]) -> str:
 
 __all__ = [
     "FixedZRollout",
+    "PriorTerm",
     "actor_gradient_conflict",
     "compute_calibration",
     "compute_diagnostics",
@@ -228,6 +228,7 @@ __all__ = [
     "format_diagnostics",
     "gaussian_classifier_auc",
     "knn_classifier_auc",
+    "prior_term",
     "record_gradient_conflict",
     "roc_auc",
     "rollout_with_z",

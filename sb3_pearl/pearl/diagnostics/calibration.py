@@ -13,6 +13,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_pearl.common.seeding import derived_seed
 from sb3_pearl.common.soft_actor_critic import evaluate_policy, q_of_actions, q_of_policy, soft_value
 from sb3_pearl.envs.task_protocol import Task
+from sb3_pearl.pearl.diagnostics.prior import prior_term
 from sb3_pearl.pearl.diagnostics.rollouts import _CALIBRATION, rollout_with_z
 
 if TYPE_CHECKING:
@@ -21,11 +22,12 @@ if TYPE_CHECKING:
 
 def _critic_for_prior(model: PEARL) -> tuple[Any, str]:
     """The critic that scores the prior term: Q~ (separate) or Q (shared mode, PEARL), with its name."""
-    if model.prior_critic is not None:
+    prior = prior_term(model)
+    if prior.critic is not None:
         if model.policy.prior_critic_input == "state":
-            return model.prior_critic, "prior critic Q~(s, a) (z-free)"
-        return model.prior_critic, "prior critic Q~(s, a, z0)"
-    if model.prior_critic_mode == "shared":
+            return prior.critic, "prior critic Q~(s, a) (z-free)"
+        return prior.critic, "prior critic Q~(s, a, z0)"
+    if prior.critic_mode == "shared":
         return model.critic, "critic Q(s, a, z0) (prior_critic='shared': the prior term's critic)"
     return model.critic, "critic Q(s, a, z0) (PEARL has no prior critic)"
 
@@ -125,7 +127,7 @@ def compute_calibration(
     :return: means over (z0, task) and the correlation over z0 draws of Q~ with the returns
     """
     critic, critic_name = _critic_for_prior(model)
-    critic_features = model.policy.prior_critic_features if critic is model.prior_critic else _state_z
+    critic_features = model.policy.prior_critic_features if critic is prior_term(model).critic else _state_z
     ent_coef = model._current_ent_coef()
     discrete = model.policy.discrete
     q = np.zeros((len(z0), len(tasks)))

@@ -16,6 +16,7 @@ import torch as th
 
 from sb3_pearl.common.buffers import MetaReplayBuffer
 from sb3_pearl.common.type_aliases import PEARLLosses
+from sb3_pearl.pearl.diagnostics.prior import prior_term
 from sb3_pearl.pearl.gradient_conflict import gradient_conflict, record_gradient_conflict
 
 __all__ = ["actor_gradient_conflict", "compute_gradient_conflict", "record_gradient_conflict"]
@@ -32,7 +33,7 @@ def actor_gradient_conflict(model: PEARL, losses: PEARLLosses) -> dict[str, floa
     :param losses: the losses of the step (``model._compute_losses``)
     :return: ``ratio``, ``cos``, ``prior_norm`` and ``post_norm`` (see ``gradient_conflict``)
     """
-    return gradient_conflict(model.actor, model.prior_coef, losses)
+    return gradient_conflict(model.actor, prior_term(model).coef, losses)
 
 
 def compute_gradient_conflict(model: PEARL, buffer: MetaReplayBuffer, n_batches: int) -> dict[str, Any]:
@@ -48,7 +49,7 @@ def compute_gradient_conflict(model: PEARL, buffer: MetaReplayBuffer, n_batches:
     per_batch = []
     for _ in range(n_batches):
         tasks = np.random.choice(candidates, size=model.meta_batch, replace=len(candidates) < model.meta_batch)
-        replay = buffer.rl.sample(tasks, model.batch_size, model.device, returns=model.prior_target == "mc")
+        replay = buffer.rl.sample(tasks, model.batch_size, model.device, returns=prior_term(model).monte_carlo)
         ctx = buffer.context.sample(tasks, model.embedding_batch_size, model.device)
         context = model.policy.make_context(ctx.observations, ctx.actions, ctx.rewards, ctx.next_observations)
         z0 = th.randn(len(tasks), model.latent_dim, device=model.device)  # one prior z per task
@@ -59,7 +60,7 @@ def compute_gradient_conflict(model: PEARL, buffer: MetaReplayBuffer, n_batches:
         return float(np.mean(values)) if values else math.nan
 
     return {
-        "prior_coef": model.prior_coef,
+        "prior_coef": prior_term(model).coef,
         "n_batches": n_batches,
         "ratio": mean_of("ratio"),
         "cos": mean_of("cos"),
