@@ -175,18 +175,7 @@ def test_no_import_cycle_between_modules() -> None:
     assert cycles(GRAPH) == []
 
 
-@pytest.mark.parametrize(
-    "home",
-    [
-        "pearl",
-        "finetune",
-        "oracle",
-        pytest.param(
-            "maml",
-            marks=pytest.mark.xfail(strict=True, reason="MAML's sampling and advantages still take the model (to do)"),
-        ),
-    ],
-)
+@pytest.mark.parametrize("home", ["pearl", "finetune", "oracle", "maml"])
 def test_no_import_cycle_inside_an_algorithm_room_type_only_imports_included(home: str) -> None:
     """An algorithm is one class with its own methods: no module of its room imports back the module that imports it,
     not even for type annotations (PEARL's collection and returns are its methods, not functions of the model)."""

@@ -1,7 +1,7 @@
 """Divergence guard: non-finite env outputs are errors that name the env, task and step; non-finite updates are skipped.
 
 - :func:`check_env_step`: called by every collection loop (PEARL's ``collect_iteration``, Fine-Tune's
-  ``_store_transition``, MAML's ``collect_episodes``) right after ``env.step``. The fast path is one
+  ``_store_transition``, MAML's ``_collect_episodes``) right after ``env.step``. The fast path is one
   ``np.isfinite`` over the VecEnv's rewards and observations; a non-finite value raises
   :class:`NonFiniteEnvError` naming the env id, the env index, its task and the timestep, instead of
   storing it (one reward of 1e30 or nan would otherwise poison the critic and its Adam state).

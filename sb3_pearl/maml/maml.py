@@ -34,13 +34,22 @@ from stable_baselines3.common.utils import safe_mean
 from torch.nn.utils import parameters_to_vector
 
 from sb3_pearl.common.checks import check_arch, check_gamma, check_int, check_real
+from sb3_pearl.common.divergence import check_env_step
 from sb3_pearl.common.meta_algorithm import MetaAlgorithm, check_observed_transition, check_task_arguments
 from sb3_pearl.common.persistence import saved_arguments
-from sb3_pearl.common.tasks import env_time_limit
+from sb3_pearl.common.tasks import env_time_limit, set_vec_env_task
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.maml.advantages import compute_advantages, split_task_samples
 from sb3_pearl.maml.policies import MAMLPolicy, MlpPolicy, Params
-from sb3_pearl.maml.sampling import Episode, act_store_dim, collect_episodes, episodes_to_batch, observed_action
+from sb3_pearl.maml.sampling import (
+    Episode,
+    act_store_dim,
+    env_actions,
+    episodes_to_batch,
+    observed_action,
+    pick_task,
+    reset_one,
+)
 from sb3_pearl.maml.trpo import conjugate_gradient, fisher_vector_product, line_search
 from sb3_pearl.maml.type_aliases import EpisodeBatch, OldPolicy, TaskSamples, TRPOInfo
 
@@ -231,8 +240,94 @@ class MAML(MetaAlgorithm):
     def _collect_episodes(
         self, tasks: list[Task], params: Params | None, callback: BaseCallback | None = None
     ) -> tuple[EpisodeBatch, bool]:
-        """Roll out ``episodes_per_task`` trajectories per task: :func:`sb3_pearl.maml.sampling.collect_episodes`."""
-        return collect_episodes(self, tasks, params, callback)
+        """
+        Roll out ``episodes_per_task`` trajectories on each task, spreading them over the envs.
+
+        Each env keeps running episodes of its current task (the task sticks across auto-resets) and
+        switches (``set_task`` then an explicit reset) only when that task has no episode left
+        (see :func:`sb3_pearl.maml.sampling.pick_task`). Adds the env steps taken to ``num_timesteps``.
+
+        :param tasks: the ``T`` tasks
+        :param params: per-task parameters (every tensor with leading dimension ``T``), or None for ``theta``
+        :param callback: called once per VecEnv step; None during tests
+        :return: the padded episodes and whether training should continue (callback result)
+        """
+        assert self.env is not None and self.max_episode_steps is not None
+        env = self.env
+        policy = self.policy
+        n_envs = env.num_envs
+        n_tasks, n_eps, horizon = len(tasks), self.episodes_per_task, self.max_episode_steps
+        obs_dim = policy.obs_dim
+        observations = np.zeros((n_tasks, n_eps, horizon, obs_dim), dtype=np.float32)
+        actions = np.zeros((n_tasks, n_eps, horizon, act_store_dim(policy)), dtype=np.float32)
+        rewards = np.zeros((n_tasks, n_eps, horizon), dtype=np.float32)
+        lengths = np.zeros((n_tasks, n_eps), dtype=np.int64)
+
+        next_episode = np.zeros(n_tasks, dtype=np.int64)  # next unassigned episode of each task
+        env_slot: list[tuple[int, int] | None] = [None] * n_envs  # (task, episode) run by each env
+        env_t = np.zeros(n_envs, dtype=np.int64)
+
+        # Initial assignment: one task per env, applied by a reset of all envs.
+        for i in range(n_envs):
+            task_idx = pick_task(None, next_episode, n_eps, env_slot)
+            if task_idx is None:
+                break
+            env_slot[i] = (task_idx, int(next_episode[task_idx]))
+            next_episode[task_idx] += 1
+            set_vec_env_task(env, tasks[task_idx], [i])
+        obs = np.asarray(env.reset(), dtype=np.float32).reshape(n_envs, obs_dim)
+
+        continue_training = True
+        while any(slot is not None for slot in env_slot):
+            active = [i for i in range(n_envs) if env_slot[i] is not None]
+            with th.no_grad():
+                obs_t = th.as_tensor(obs, device=self.device)
+                if params is None:
+                    raw = policy.sample(obs_t)
+                else:
+                    task_of_env = th.as_tensor([slot[0] if slot is not None else 0 for slot in env_slot], device=self.device)
+                    env_params = {name: value[task_of_env] for name, value in params.items()}
+                    raw = policy.batched_distribution(obs_t.unsqueeze(1), env_params).sample().squeeze(1)
+            new_obs, step_rewards, dones, infos = env.step(env_actions(policy, raw))
+            # Divergence guard: a non-finite observation or reward is an error naming the env, task and timestep.
+            check_env_step(env, new_obs, step_rewards, dones, infos, self.num_timesteps, type(self).__name__, active)
+            new_obs = np.asarray(new_obs, dtype=np.float32).reshape(n_envs, obs_dim)
+            raw_np = raw.cpu().numpy().reshape(n_envs, -1)
+
+            for i in active:
+                slot = env_slot[i]
+                assert slot is not None
+                task_idx, ep_idx = slot
+                t = env_t[i]
+                observations[task_idx, ep_idx, t] = obs[i]
+                actions[task_idx, ep_idx, t] = raw_np[i]
+                rewards[task_idx, ep_idx, t] = step_rewards[i]
+                env_t[i] += 1
+                if not (dones[i] or env_t[i] >= horizon):
+                    continue
+                lengths[task_idx, ep_idx] = env_t[i]
+                env_t[i] = 0
+                next_task = pick_task(task_idx, next_episode, n_eps, env_slot)
+                if next_task is None:
+                    env_slot[i] = None
+                    continue
+                env_slot[i] = (next_task, int(next_episode[next_task]))
+                next_episode[next_task] += 1
+                if next_task != task_idx:
+                    set_vec_env_task(env, tasks[next_task], [i])
+                    new_obs[i] = reset_one(env, i)
+                elif not dones[i]:  # cut at max_episode_steps before the env's own limit
+                    new_obs[i] = reset_one(env, i)
+                # else: the VecEnv auto-reset already started a new episode of the same (sticky) task
+            obs = new_obs
+
+            self.num_timesteps += len(active)
+            if callback is not None:
+                callback.update_locals(locals())
+                if not callback.on_step():
+                    continue_training = False
+                    break
+        return EpisodeBatch(observations, actions, rewards, lengths), continue_training
 
     def compute_advantages(self, batch: EpisodeBatch) -> th.Tensor:
         """
