@@ -107,7 +107,7 @@ def test_train_writes_zoo_layout_and_meta_test(trained: Path) -> None:
     for name in ("config.yml", "args.yml", "command.txt"):
         assert (run_dir / ENV_ID / name).is_file(), name
     lines = (run_dir / "meta_test.csv").read_text().splitlines()
-    assert lines[0] == "task,repeat,k,return,cost,length,violated"
+    assert lines[0] == "task,repeat,k,return,cost,length,violated,distance"  # distance: the goal family's measure
     assert len(lines) == 1 + 3 * 3  # 3 saved test tasks, k = 0..2
     history = (run_dir / "meta_test_history.csv").read_text().splitlines()
     assert len(history) == 1 + 2 * 3  # evaluations at 100 and 200 steps, k = 0..2

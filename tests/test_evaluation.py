@@ -338,3 +338,37 @@ def test_velocity_families_record_each_trajectorys_velocity_error(env_id: str) -
     assert k0["velocity_error_mean"] == pytest.approx(np.mean([r["velocity_error"] for r in result.rows if r["k"] == 0]))
     assert "velocity error, m/s" in result.format_summary()
     assert "velocity error, m/s" in format_prior_posterior_table(result.summary)
+
+
+@pytest.mark.parametrize(
+    "env_id", ["PointGoalMeta-v0", "SafePointGoalMeta-v0", "SparsePointGoalMeta-v0", "AntGoalMeta-v0", "PointMazeGoalMeta-v0"]
+)
+def test_goal_families_record_each_trajectorys_final_distance(env_id: str) -> None:
+    """The goal families' measure of the job: the Euclidean distance to the goal at the trajectory's last step, in the
+    rows, the summary and both tables."""
+    from sb3_pearl.evaluation.scripted import ScriptedPolicy
+
+    env = gym.make(env_id)
+    still = ScriptedPolicy(lambda obs: np.zeros(env.action_space.shape), "no action")
+    tasks = env.unwrapped.sample_tasks(2, seed=3)
+    result = meta_test(still, env, tasks, n_adapt=1, n_repeats=1, seed=0, max_steps=30, trace_keys=("distance",))
+    for row, trace in zip(result.rows, result.traces, strict=True):
+        assert row["distance"] == trace["distance"][-1]
+        if env_id in ("PointGoalMeta-v0", "SafePointGoalMeta-v0", "SparsePointGoalMeta-v0"):  # a still point stays at 0
+            assert row["distance"] == pytest.approx(np.linalg.norm(tasks[row["task"]]["goal"]))
+    k0 = result.summary[0]
+    assert k0["distance_mean"] == pytest.approx(np.mean([r["distance"] for r in result.rows if r["k"] == 0]))
+    assert "final goal distance" in result.format_summary()
+    assert "final goal distance" in format_prior_posterior_table(result.summary)
+
+
+def test_ant_goal_distance_is_the_torsos_euclidean_distance_to_the_goal() -> None:
+    """AntGoalMeta-v0's ``info["distance"]`` by hand: the torso's planar position against the task's goal."""
+    env = gym.make("AntGoalMeta-v0")
+    task = {"goal": [1.5, -2.0]}
+    env.unwrapped.set_task(task)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.zeros(env.action_space.shape))
+    expected = np.hypot(info["x_position"] - 1.5, info["y_position"] + 2.0)
+    assert info["distance"] == pytest.approx(expected)
+    assert -info["reward_forward"] == pytest.approx(abs(info["x_position"] - 1.5) + abs(info["y_position"] + 2.0))

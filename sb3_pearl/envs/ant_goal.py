@@ -26,7 +26,7 @@ Choices and where they come from:
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium.envs.mujoco.ant_v5 import AntEnv
@@ -51,6 +51,8 @@ class AntGoalMetaEnv(LocomotionTaskEnv, AntEnv):
     :param kwargs: passed to Gymnasium's ``AntEnv`` (``ctrl_cost_weight``, ``contact_cost_weight``,
         ``healthy_reward``, ``healthy_z_range``, ``include_cfrc_ext_in_observation``, ``render_mode``, ...)
     """
+
+    trajectory_info_keys: ClassVar[tuple[str, ...]] = ("distance",)  # last value seen: the final distance to the goal
 
     def __init__(
         self,
@@ -108,5 +110,6 @@ class AntGoalMetaEnv(LocomotionTaskEnv, AntEnv):
         goal_x, goal_y = self._goal
         goal_reward = -(abs(info["x_position"] - goal_x) + abs(info["y_position"] - goal_y))
         info["reward_forward"] = goal_reward
+        info["distance"] = math.hypot(info["x_position"] - goal_x, info["y_position"] - goal_y)  # Euclidean, m
         reward = goal_reward + info["reward_survive"] + info["reward_ctrl"] + info["reward_contact"]
         return obs, self._finish_step(reward, terminated, info), terminated, truncated, info

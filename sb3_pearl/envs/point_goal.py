@@ -7,7 +7,7 @@ A 2-D point starting at the origin, actions in [-0.1, 0.1]^2 added to its positi
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -43,6 +43,7 @@ class PointGoalMetaEnv(MetaTaskEnv, gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    trajectory_info_keys: ClassVar[tuple[str, ...]] = ("distance",)  # last value seen: the final distance to the goal
     # The time limit is set at registration (``max_episode_steps``); the env itself never truncates.
 
     def __init__(

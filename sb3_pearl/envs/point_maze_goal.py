@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -94,6 +94,7 @@ class PointMazeGoalMetaEnv(MetaTaskEnv, gym.Env):
     """
 
     metadata = dict(PointMazeEnv.metadata)
+    trajectory_info_keys: ClassVar[tuple[str, ...]] = ("distance",)  # last value seen: the final distance to the goal
 
     def __init__(
         self,
@@ -200,6 +201,7 @@ class PointMazeGoalMetaEnv(MetaTaskEnv, gym.Env):
         refuse_non_finite_action(self, action)
         obs, reward, terminated, truncated, info = self.maze_env.step(action)
         info["cost"] = 0.0
+        info["distance"] = float(np.linalg.norm(obs["achieved_goal"] - obs["desired_goal"]))  # the ball's, to the goal (m)
         return obs["observation"], float(reward), terminated, truncated, info
 
     @property

@@ -144,7 +144,9 @@ def _prior_posterior_cells(entry: dict[str, Any]) -> list[str]:
 PRIOR_POSTERIOR_ROWS = ("return, mean +- std", "return, CVaR 10%", "violations, % [95%]", "cum. violations")
 # A family's own measure of the job, shown beside return and violations where the family records it per trajectory
 # (its ``trajectory_info_keys``): summary key -> row label.
-JOB_MEASURES = {"velocity_error_mean": "velocity error, m/s"}
+# Velocity families: the mean over the trajectory's steps of |v - v*|; goal families: the distance to the goal at the
+# trajectory's last step.
+JOB_MEASURES = {"velocity_error_mean": "velocity error, m/s", "distance_mean": "final goal distance"}
 
 
 def format_prior_posterior_table(entries: Sequence[dict[str, Any]], max_columns: int = 6) -> str:
