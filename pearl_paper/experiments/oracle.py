@@ -101,8 +101,9 @@ ANT3D_VEL_FORWARD = dataclasses.replace(
 )
 # The third candidate, declared from the second's replay buffer at 232k env steps (326 falls in 232,198 transitions,
 # every one a jump of the torso above 1.0 m, none a collapse below 0.2 m): the fall penalty arrives as one reward of
-# -290 to -410 on a single transition (3 per skipped step), and those 0.14% of transitions hold 76% of the reward sum
-# over the first 20k env steps and still 18% at 180k-232k, while a living step earns about -0.5. The critic regresses
+# -210 to -440 on a single transition (3 per skipped step), and those 0.14% of transitions hold 71% of the reward's
+# magnitude over the first 20k env steps and still 7-15% at 180k-232k, while a living step earns about -0.5
+# (``reproduce reward-profile``: results/oracle/ant3d-vel-fwd/oracle/seed0/reward_profile.json). The critic regresses
 # onto rare, huge, time-dependent spikes it cannot predict (the step count is not observed). This candidate moves the
 # same penalty into the healthy reward: 1 + 3 = 4 per living step and no penalty on the fall. Every trajectory's
 # return is then the second candidate's plus the constant 3 x 200 = 600 (to within the 3 of the falling step), so the

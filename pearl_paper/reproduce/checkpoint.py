@@ -128,11 +128,9 @@ class RunCheckpoint:
             model = algo_cls.load(self.folder / files["model"], env=env, device=device, strict_env=True)
         except EnvStateError as error:
             raise EnvStateError(f"{error}, or restart the run from zero with --force") from error
-        if hasattr(model, "load_replay_buffer"):
-            if "replay" in files:
-                model.load_replay_buffer(self.folder / files["replay"])
-            elif "replay.part0" in files:
-                model.load_replay_buffer(io.BytesIO(self._joined(files, "replay")))
+        replay = self.replay_bytes(files) if hasattr(model, "load_replay_buffer") else None
+        if replay is not None:
+            model.load_replay_buffer(io.BytesIO(replay))
         if int(model.num_timesteps) != int(state["num_timesteps"]):
             raise ValueError(
                 f"{self.folder}: the model is at {model.num_timesteps} steps, the state says {state['num_timesteps']}: "
@@ -173,6 +171,18 @@ class RunCheckpoint:
                 file.write(chunk)
         return written
 
+    def replay_bytes(self, files: dict[str, str]) -> bytes | None:
+        """
+        The replay buffer's pickled bytes, whole or joined from its parts, or None when the checkpoint holds none.
+
+        :param files: the ``files`` of :meth:`read_state`'s state
+        """
+        if "replay" in files:
+            return (self.folder / files["replay"]).read_bytes()
+        if "replay.part0" in files:
+            return self._joined(files, "replay")
+        return None
+
     def _joined(self, files: dict[str, str], key: str) -> bytes:
         """The bytes of a file saved in parts (``key.part0``, ``key.part1``, ...), joined in order."""
         chunks, i = [], 0
@@ -192,9 +202,11 @@ class RunCheckpoint:
         """
         state = self.read_state()
         files = dict((state or {}).get("files") or {})
-        if state is None or not any(key == "replay" or key.startswith("replay.part") for key in files):
+        if state is None:
             return 0, 0
-        data = (self.folder / files["replay"]).read_bytes() if "replay" in files else self._joined(files, "replay")
+        data = self.replay_bytes(files)
+        if data is None:
+            return 0, 0
         buffer = pickle.loads(data)
         compact = compact_buffer(buffer)
         if compact is buffer:

@@ -142,6 +142,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     compact.add_argument("runs", nargs="+", help="run folders (results/<experiment>/<family>/<variant>/seed<N>)")
 
+    profile = sub.add_parser(
+        "reward-profile",
+        help="falls against living steps in a part-way run's replay buffer (reward_profile.json in the run's folder)",
+    )
+    profile.add_argument("runs", nargs="+", help="run folders (results/<experiment>/<family>/<variant>/seed<N>)")
+    profile.add_argument("--window", type=positive_int, default=20_000, help="transitions per window (default: 20000)")
+
     one = sub.add_parser("run-one", help=argparse.SUPPRESS)  # what each child process of `run` executes
     one.add_argument("--experiment", required=True)
     one.add_argument("--family", required=True)
@@ -315,6 +322,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 with run_lock(Path(run), wait_s=0.0):  # never under a run that is training
                     before, after = RunCheckpoint(run).compact_replay()
                 print(f"{run}: replay buffer {before / 1e6:.0f} MB -> {after / 1e6:.0f} MB")
+            return 0
+        if args.command == "reward-profile":
+            from pearl_paper.reproduce.ownership import run_lock
+            from pearl_paper.reproduce.reward_profile import checkpoint_reward_profile
+
+            for run in args.runs:
+                with run_lock(Path(run), wait_s=0.0):  # never under a run that is training
+                    path = checkpoint_reward_profile(run, args.window)
+                print(f"{run}: wrote {path}")
             return 0
         if args.command == "velocity":
             import torch as th
