@@ -229,3 +229,63 @@ def test_reproduce_velocity_measures_finished_runs_on_their_own_held_out_tasks(t
     before = (folder / "velocity_held_out.json").stat().st_mtime_ns
     assert reproduce_main(["velocity", "oracle", *args]) == 0
     assert (folder / "velocity_held_out.json").stat().st_mtime_ns == before
+
+
+def _merge_rows(failures_k0: int, failures_adapted: int, adapted_return: float) -> list[dict]:
+    """10 trajectories at k = 0 and 10 at k = 1 with the given numbers of violations (crash or no merge)."""
+    rows = [{"k": 0, "return": -5.0, "violated": i < failures_k0} for i in range(10)]
+    return rows + [{"k": 1, "return": adapted_return, "violated": i < failures_adapted} for i in range(10)]
+
+
+def test_merge_rule_by_hand() -> None:
+    """Rule 3: the oracle at most 10% failures after adaptation; a meta-learner within 5 points of its failures and 10%
+    of its return."""
+    from pearl_paper.reproduce.merge_competence import merge_run, merge_verdicts
+
+    oracle = [merge_run(_merge_rows(1, 1, -10.0), 0), merge_run(_merge_rows(0, 0, -10.0), 1)]  # 5% and -10.0
+    assert (oracle[0].prior_failure, oracle[0].adapted_failure, oracle[0].adapted_return) == (0.1, 0.1, -10.0)
+    runs = {
+        "oracle": oracle,
+        "PEARL": [merge_run(_merge_rows(3, 1, -10.9), 0)],  # 10% <= 5% + 5 points; -10.9 >= -11.0
+        "PEARL+": [merge_run(_merge_rows(0, 2, -11.5), 0)],  # 20% > 10%; -11.5 < -11.0
+    }
+    verdicts = merge_verdicts(runs, n_oracle_seeds=2)
+    assert verdicts.oracle == "competent"
+    assert verdicts.competent == {"PEARL": "competent", "PEARL+": "not competent: fails more and returns less"}
+    assert merge_verdicts({"oracle": [merge_run(_merge_rows(0, 2, -1.0), 0)]}).oracle == (
+        "not competent (provisional: 1 of 3 oracle seeds)"
+    )
+    with pytest.raises(ValueError, match="needs at least one oracle run"):
+        merge_verdicts({"PEARL": runs["PEARL"]})
+
+
+def test_merge_competence_section_reads_the_oracle_and_table1s_runs(tmp_path) -> None:
+    """The report's Merge rows come from the runs' result.json: the oracle's (oracle-merge) and Table I's Merge runs
+    (PEARL's live in the experiment that owns them)."""
+    import json
+
+    from pearl_paper.experiments import get_experiment
+    from pearl_paper.reproduce.layout import RESULT_FILE
+    from pearl_paper.reproduce.merge_competence import merge_competence_section
+    from pearl_paper.reproduce.velocity import competence_section
+
+    assert merge_competence_section(tmp_path) == []
+
+    def write(experiment: str, variant: str, seed: int, rows: list[dict]) -> None:
+        owner = get_experiment(experiment).owner(variant)
+        folder = tmp_path / owner / "highway-merge" / variant / f"seed{seed}"
+        folder.mkdir(parents=True)
+        summary = [{key: 0.0 for key in ("k", "n", "return_mean", "violation_rate")}]
+        result = {"experiment": owner, "family": "highway-merge", "variant": variant, "seed": seed, "budget_preset": "cpu"}
+        result["meta_test"] = {"rows": rows, "summary": summary}
+        (folder / RESULT_FILE).write_text(json.dumps(result))
+
+    write("oracle-merge", "oracle", 0, _merge_rows(0, 1, -10.0))
+    write("merge-table1", "pearl-fixed-entropy", 0, _merge_rows(3, 1, -10.5))
+    write("merge-table1", "pearl-fixed-entropy", 1, _merge_rows(1, 3, -10.5))
+    text = "\n".join(competence_section(tmp_path))
+    assert text.startswith("### Competence against the oracle") and "#### Highway-Merge" in text
+    assert "(15.0%) and its k >= 1 return at least the oracle's - 10% of |the oracle's| (-11.00)" in text
+    assert "| Oracle (1) | 10.0% [10.0, 10.0] | 0.0% | -10.00 | competent (provisional: 1 of 3 oracle seeds) |" in text
+    assert "| PEARL (2) | 20.0% [10.0, 30.0] | 20.0% | -10.50 | not competent: fails more (provisional" in text
+    assert "PEARL+ (" not in text  # no run of PEARL+: no row

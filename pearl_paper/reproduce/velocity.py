@@ -27,6 +27,7 @@ import numpy as np
 
 from pearl_paper.experiments.oracle import COMPETENCE_RULES, JUDGED_RUNS, ORACLE, SPEED_BINS, CompetenceRules
 from pearl_paper.reproduce.layout import RESULT_FILE, read_run_result, write_json_atomic
+from pearl_paper.reproduce.merge_competence import merge_competence_section
 from sb3_pearl.envs.task_observation import task_features
 from sb3_pearl.evaluation.held_out import model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import json_value, read_json
@@ -249,7 +250,8 @@ def competence_section(results_dir: str | os.PathLike[str], rules: CompetenceRul
     """
     The markdown of competence against the oracle: per oracle family with a record, the references, the oracle's and
     each judged meta-learner's held-out velocity error (k >= 1, per target-speed bin, k = 0), falls and return, and
-    the verdicts of :data:`~pearl_paper.experiments.oracle.COMPETENCE_RULES` (empty when no oracle record exists).
+    the verdicts of :data:`~pearl_paper.experiments.oracle.COMPETENCE_RULES`; then Highway-Merge's rule
+    (:func:`~pearl_paper.reproduce.merge_competence.merge_competence_section`). Empty when no oracle record exists.
 
     :param results_dir: root of the results layout
     :param rules: the rules
@@ -292,6 +294,7 @@ def competence_section(results_dir: str | os.PathLike[str], rules: CompetenceRul
                 f"| {np.mean(returns):.1f} | {verdict} |"
             )
         out += [""]
+    out += merge_competence_section(results_dir, rules)
     if not out:
         return []
     return [
