@@ -289,3 +289,30 @@ def test_merge_competence_section_reads_the_oracle_and_table1s_runs(tmp_path) ->
     assert "| Oracle (1) | 10.0% [10.0, 10.0] | 0.0% | -10.00 | competent (provisional: 1 of 3 oracle seeds) |" in text
     assert "| PEARL (2) | 20.0% [10.0, 30.0] | 20.0% | -10.50 | not competent: fails more (provisional" in text
     assert "PEARL+ (" not in text  # no run of PEARL+: no row
+
+
+def test_tracking_panels_and_figure_from_the_velocity_records(tmp_path) -> None:
+    """The report's tracking figure: per task the target speed, the best constant's error and each agent's adapted
+    error averaged over seeds and repeats (k = 0 left out)."""
+    import json
+
+    from pearl_paper.reproduce.figures import plot_tracking
+    from pearl_paper.reproduce.velocity import VELOCITY_FILE, tracking_panels
+
+    targets = [[0.0], [1.0], [3.0]]  # best constant 1.0: errors 1, 0, 2
+    for experiment, variant, seed, adapted in (
+        ("oracle", "oracle", 0, 0.2),
+        ("pearl-reference", "pearl", 0, 0.4),
+        ("pearl-reference", "pearl", 1, 0.6),
+    ):
+        folder = tmp_path / experiment / "walker2d-vel-long" / variant / f"seed{seed}"
+        folder.mkdir(parents=True)
+        (folder / VELOCITY_FILE).write_text(json.dumps(_record(seed, {0: 5.0, 1: adapted, 2: adapted}, targets)))
+    (panel,) = tracking_panels(tmp_path)
+    np.testing.assert_allclose(panel["speeds"], [0.0, 1.0, 3.0])
+    np.testing.assert_allclose(panel["constant_errors"], [1.0, 0.0, 2.0])
+    assert list(panel["errors"]) == ["Oracle (1)", "PEARL (2)"]
+    np.testing.assert_allclose(panel["errors"]["Oracle (1)"], [0.2, 0.3, 0.4])  # + 0.1 x task
+    np.testing.assert_allclose(panel["errors"]["PEARL (2)"], [0.5, 0.6, 0.7])  # seeds 0.4 and 0.6 averaged
+    assert plot_tracking([panel], tmp_path / "t.png") and (tmp_path / "t.png").stat().st_size > 0
+    assert not plot_tracking([], tmp_path / "none.png") and not (tmp_path / "none.png").exists()

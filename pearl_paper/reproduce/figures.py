@@ -372,3 +372,35 @@ def plot_decisions(decisions: Sequence[Any], path: str | os.PathLike[str]) -> bo
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return True
+
+
+def plot_tracking(panels: Sequence[Mapping[str, Any]], path: str | os.PathLike[str]) -> bool:
+    """
+    Velocity tracking on the held-out tasks against the task-independent references, one panel per family: each
+    task's adapted (k >= 1) velocity error against its target speed, per agent, with the error of standing still
+    (``|v*|``, a line) and of the best constant velocity (``|c - v*|``, crosses).
+
+    :param panels: per family: ``title``, ``speeds`` (shape (n_tasks,): ``|v*|``), ``constant_errors`` (shape
+        (n_tasks,)) and ``errors`` (label -> shape (n_tasks,), the agent's per-task error)
+    :param path: PNG path
+    :return: False (and nothing written) without a panel
+    """
+    if not panels:
+        return False
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.0), squeeze=False)
+    for ax, panel in zip(axes[0], panels):
+        speeds = np.asarray(panel["speeds"], dtype=np.float64)
+        span = np.array([0.0, float(speeds.max())])
+        ax.plot(span, span, color="grey", linestyle="--", label="standing still")
+        ax.plot(speeds, panel["constant_errors"], "x", color="grey", label="best constant")
+        for index, (label, errors) in enumerate(panel["errors"].items()):
+            ax.plot(speeds, errors, "o", color=f"C{index}", alpha=0.8, label=label)
+        ax.set_xlabel("target speed |v*| (m/s)")
+        ax.set_ylabel("velocity error, k >= 1 (m/s)")
+        ax.set_title(_wrap(panel["title"], 44), fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True

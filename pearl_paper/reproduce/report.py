@@ -315,10 +315,17 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         folder down, link to ``../<figures_link>``)
     :return: the summary and the pages
     """
-    from pearl_paper.reproduce.figures import plot_curves, plot_decisions, plot_group, plot_prior_selection, plot_seeds
+    from pearl_paper.reproduce.figures import (
+        plot_curves,
+        plot_decisions,
+        plot_group,
+        plot_prior_selection,
+        plot_seeds,
+        plot_tracking,
+    )
     from pearl_paper.reproduce.remeasured_tables import remeasured_section
     from pearl_paper.reproduce.table1_verdicts import decide, decide_confirmation, decision_section
-    from pearl_paper.reproduce.velocity import competence_section
+    from pearl_paper.reproduce.velocity import competence_section, tracking_panels
 
     groups = load_groups(results_dir)
     out = [
@@ -352,7 +359,17 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
             "",
         ]
         out += decision_section(confirmation)
-    out += competence_section(results_dir)
+    competence = competence_section(results_dir)
+    if competence and plot_tracking(tracking_panels(results_dir), Path(figures_dir) / "oracle_tracking.png"):
+        link = f"{figures_link.rstrip('/')}/oracle_tracking.png"
+        competence += [
+            "Each held-out task's velocity error after adaptation against its target speed; an agent that tracks lies "
+            "well below both references:",
+            "",
+            f"![held-out velocity error per task against the references]({link})",
+            "",
+        ]
+    out += competence
     out += remeasured_section(results_dir)
     pages: dict[str, list[str]] = defaultdict(list)  # experiment name -> its page's lines
     page_figures = posixpath.join("..", figures_link.rstrip("/"))

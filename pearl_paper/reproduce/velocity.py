@@ -26,6 +26,7 @@ import gymnasium as gym
 import numpy as np
 
 from pearl_paper.experiments.oracle import COMPETENCE_RULES, JUDGED_RUNS, ORACLE, SPEED_BINS, CompetenceRules
+from pearl_paper.experiments.spec import Family
 from pearl_paper.reproduce.layout import RESULT_FILE, read_run_result, write_json_atomic
 from pearl_paper.reproduce.merge_competence import merge_competence_section
 from sb3_pearl.envs.task_observation import task_features
@@ -246,6 +247,71 @@ def read_records(results_dir: str | os.PathLike[str], experiment: str, family: s
     return [read_json(path) for path in sorted(paths, key=lambda path: int(path.parent.name[4:]))]
 
 
+def oracle_family_records(results_dir: str | os.PathLike[str]) -> list[tuple[Family, dict[str, list[dict[str, Any]]]]]:
+    """
+    The velocity records of each oracle family with an oracle record: ``"oracle"``'s, then those of the runs
+    :data:`~pearl_paper.experiments.oracle.JUDGED_RUNS` names (labels without a record left out).
+
+    :param results_dir: root of the results layout
+    :return: (family, label -> records), in the order of the oracle experiment's families
+    """
+    found = []
+    for family in ORACLE.families:
+        oracle = read_records(results_dir, ORACLE.name, family.name, ORACLE.variants[0].name)
+        if not oracle:
+            continue
+        records = {"oracle": oracle}
+        for label, experiment, variant in JUDGED_RUNS[family.name]:
+            judged = read_records(results_dir, experiment, family.name, variant)
+            if judged:
+                records[label] = judged
+        found.append((family, records))
+    return found
+
+
+def per_task_errors(records: Sequence[Mapping[str, Any]]) -> np.ndarray:
+    """
+    Each held-out task's adapted velocity error, averaged over the records (seeds) and repeats: shape (n_tasks,).
+
+    :param records: velocity records measured on the same held-out tasks
+    """
+    n_tasks = len(records[0]["targets"])
+    sums, counts = np.zeros(n_tasks), np.zeros(n_tasks)
+    for record in records:
+        for row in record["rows"]:
+            if row["k"] >= 1 and math.isfinite(row["error"]):
+                sums[row["task"]] += row["error"]
+                counts[row["task"]] += 1
+    return np.divide(sums, counts, out=np.full(n_tasks, math.nan), where=counts > 0)
+
+
+def tracking_panels(results_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
+    """
+    The panels of :func:`~pearl_paper.reproduce.figures.plot_tracking`: per oracle family with a record, each held-out
+    task's target speed, the best constant's error on it and each agent's adapted error (seeds and repeats averaged).
+
+    :param results_dir: root of the results layout
+    """
+    panels = []
+    for family, records in oracle_family_records(results_dir):
+        targets = np.asarray(records["oracle"][0]["targets"], dtype=np.float64).reshape(
+            len(records["oracle"][0]["targets"]), -1
+        )
+        constant = np.asarray(constant_references(targets)["constant"])
+        panels.append(
+            {
+                "title": family.title,
+                "speeds": np.linalg.norm(targets, axis=1),
+                "constant_errors": np.linalg.norm(targets - constant, axis=1),
+                "errors": {
+                    ("Oracle" if label == "oracle" else label) + f" ({len(label_records)})": per_task_errors(label_records)
+                    for label, label_records in records.items()
+                },
+            }
+        )
+    return panels
+
+
 def competence_section(results_dir: str | os.PathLike[str], rules: CompetenceRules = COMPETENCE_RULES) -> list[str]:
     """
     The markdown of competence against the oracle: per oracle family with a record, the references, the oracle's and
@@ -258,15 +324,9 @@ def competence_section(results_dir: str | os.PathLike[str], rules: CompetenceRul
     :return: the lines
     """
     out: list[str] = []
-    for family in ORACLE.families:
-        oracle = read_records(results_dir, ORACLE.name, family.name, ORACLE.variants[0].name)
-        if not oracle:
-            continue
-        records = {"oracle": oracle}
-        records.update(
-            {label: read_records(results_dir, exp, family.name, variant) for label, exp, variant in JUDGED_RUNS[family.name]}
-        )
-        decision = family_verdicts(family.name, {label: rs for label, rs in records.items() if rs}, rules)
+    for family, records in oracle_family_records(results_dir):
+        oracle = records["oracle"]
+        decision = family_verdicts(family.name, records, rules)
         constant = decision.references["best_constant"]
         bins = list(next(iter(decision.runs["oracle"])).by_bin)
         if len(oracle) < len(ORACLE.seeds):
