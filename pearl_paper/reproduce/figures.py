@@ -32,6 +32,13 @@ from pearl_paper.reproduce.cells import cell_stats, last_k, seed_values  # noqa:
 from pearl_paper.reproduce.curve import curve_value  # noqa: E402
 
 
+def save_figure(fig: Any, path: str | os.PathLike[str]) -> None:
+    """Lay the figure out, write it as a PNG (110 dpi, the project's figures) and free it."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _error_bars(mean: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
     return np.nan_to_num(np.maximum(np.stack([mean - low, high - mean]), 0.0))
 
@@ -87,9 +94,7 @@ def plot_group(
     ax_return.legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_seeds(
@@ -131,9 +136,7 @@ def plot_seeds(
     axes[0, -1].legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 
@@ -256,9 +259,7 @@ def plot_curves(
     axes.flat[0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 
@@ -368,9 +369,7 @@ def plot_decisions(decisions: Sequence[Any], path: str | os.PathLike[str]) -> bo
         ax.set_title(_wrap(f"{decision.family}: safer prior {decision.prior_verdict}", 48), fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 
@@ -400,7 +399,5 @@ def plot_tracking(panels: Sequence[Mapping[str, Any]], path: str | os.PathLike[s
         ax.set_title(_wrap(panel["title"], 44), fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
