@@ -11,6 +11,7 @@ import torch
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_pearl  # noqa: F401  (registers the families)
+from pearl_paper.experiments.oracle import ORACLE
 from pearl_paper.reproduce.velocity import constant_references, family_verdicts, geometric_median
 from sb3_pearl import Oracle
 from sb3_pearl.envs import FAMILIES
@@ -316,3 +317,22 @@ def test_tracking_panels_and_figure_from_the_velocity_records(tmp_path) -> None:
     np.testing.assert_allclose(panel["errors"]["PEARL (2)"], [0.5, 0.6, 0.7])  # seeds 0.4 and 0.6 averaged
     assert plot_tracking([panel], tmp_path / "t.png") and (tmp_path / "t.png").stat().st_size > 0
     assert not plot_tracking([], tmp_path / "none.png") and not (tmp_path / "none.png").exists()
+
+
+TASK_RANGE_KEYS = ("speed_low", "speed_high", "velocity_low", "velocity_high", "direction_low", "direction_high")
+
+
+@pytest.mark.parametrize("family", ORACLE.families, ids=lambda family: family.name)
+def test_oracle_families_shift_only_the_task_ranges(family) -> None:
+    """The shifted meta-test (``{**env_kwargs, **shift_env_kwargs}``, as the runner merges them) changes the task ranges
+    and nothing of the family's reward: a candidate whose fall penalty is moved into the healthy reward keeps it moved."""
+    merged = {**family.env_kwargs, **dict(family.shift_env_kwargs or {})}
+    for key, value in family.env_kwargs.items():
+        if key not in TASK_RANGE_KEYS:
+            assert merged[key] == value, key
+    if family.name == "ant3d-vel-fwd-spread":
+        assert merged["unhealthy_penalty"] == 0.0 and merged["healthy_reward"] == 4.0
+        env = gym.make(family.env_id, **merged)
+        env.reset(seed=0)
+        _, reward, _, _, info = env.step(np.zeros(env.action_space.shape))
+        assert reward == pytest.approx(4.0 + info["reward_forward"] + info["reward_ctrl"] + info["reward_contact"])
