@@ -249,10 +249,17 @@ def test_merge_rule_by_hand() -> None:
         "oracle": oracle,
         "PEARL": [merge_run(_merge_rows(3, 1, -10.9), 0)],  # 10% <= 5% + 5 points; -10.9 >= -11.0
         "PEARL+": [merge_run(_merge_rows(0, 2, -11.5), 0)],  # 20% > 10%; -11.5 < -11.0
+        "fails more only": [merge_run(_merge_rows(0, 2, -10.0), 0)],
+        "returns less only": [merge_run(_merge_rows(0, 1, -11.5), 0)],
     }
     verdicts = merge_verdicts(runs, n_oracle_seeds=2)
     assert verdicts.oracle == "competent"
-    assert verdicts.competent == {"PEARL": "competent", "PEARL+": "not competent: fails more and returns less"}
+    assert verdicts.competent == {
+        "PEARL": "competent",
+        "PEARL+": "not competent: fails more and returns less",
+        "fails more only": "not competent: fails more",
+        "returns less only": "not competent: returns less",
+    }
     assert merge_verdicts({"oracle": [merge_run(_merge_rows(0, 2, -1.0), 0)]}).oracle == (
         "not competent (provisional: 1 of 3 oracle seeds)"
     )
@@ -265,15 +272,16 @@ def test_merge_competence_section_reads_the_oracle_and_table1s_runs(tmp_path) ->
     (PEARL's live in the experiment that owns them)."""
     import json
 
-    from pearl_paper.experiments import get_experiment
     from pearl_paper.reproduce.layout import RESULT_FILE
     from pearl_paper.reproduce.merge_competence import merge_competence_section
     from pearl_paper.reproduce.velocity import competence_section
 
     assert merge_competence_section(tmp_path) == []
 
-    def write(experiment: str, variant: str, seed: int, rows: list[dict]) -> None:
-        owner = get_experiment(experiment).owner(variant)
+    owners = {"oracle": "oracle-merge", "pearl-fixed-entropy": "merge-premise", "pearlplus-fixed-entropy": "merge-table1"}
+
+    def write(variant: str, seed: int, rows: list[dict]) -> None:
+        owner = owners[variant]  # where each variant's runs live (PEARL's: the experiment that owns them)
         folder = tmp_path / owner / "highway-merge" / variant / f"seed{seed}"
         folder.mkdir(parents=True)
         summary = [{key: 0.0 for key in ("k", "n", "return_mean", "violation_rate")}]
@@ -281,9 +289,9 @@ def test_merge_competence_section_reads_the_oracle_and_table1s_runs(tmp_path) ->
         result["meta_test"] = {"rows": rows, "summary": summary}
         (folder / RESULT_FILE).write_text(json.dumps(result))
 
-    write("oracle-merge", "oracle", 0, _merge_rows(0, 1, -10.0))
-    write("merge-table1", "pearl-fixed-entropy", 0, _merge_rows(3, 1, -10.5))
-    write("merge-table1", "pearl-fixed-entropy", 1, _merge_rows(1, 3, -10.5))
+    write("oracle", 0, _merge_rows(0, 1, -10.0))
+    write("pearl-fixed-entropy", 0, _merge_rows(3, 1, -10.5))
+    write("pearl-fixed-entropy", 1, _merge_rows(1, 3, -10.5))
     text = "\n".join(competence_section(tmp_path))
     assert text.startswith("### Competence against the oracle") and "#### Highway-Merge" in text
     assert "(15.0%) and its k >= 1 return at least the oracle's - 10% of |the oracle's| (-11.00)" in text

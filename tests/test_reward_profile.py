@@ -82,7 +82,51 @@ def test_reward_profile_command_reads_the_checkpoints_buffer(tmp_path: Path, buf
     assert profile["windows"][0]["living_reward_mean"] == pytest.approx(float(living.mean()))
 
 
+def test_a_wrapped_buffer_is_read_oldest_first() -> None:
+    """A full buffer of 5 rows after 7 transitions (reward = transition index, a fall at transition 4): rows 2-4 were
+    written before rows 0-1, so the profile reads transitions 2, 3, 4, 5, 6 in that order."""
+    from gymnasium import spaces
+    from stable_baselines3.common.buffers import ReplayBuffer
+
+    from pearl_paper.reproduce.reward_profile import buffer_reward_profile
+
+    box = spaces.Box(-10.0, 10.0, (2,), np.float32)
+    buffer = ReplayBuffer(5, box, spaces.Box(-1.0, 1.0, (1,), np.float32), handle_timeout_termination=True)
+    for index in range(7):
+        next_obs = np.array([[float(index), 0.0]], dtype=np.float32)
+        infos = [{"TimeLimit.truncated": index == 6}]
+        buffer.add(next_obs, next_obs, np.zeros((1, 1)), np.array([float(index)]), np.array([index in (4, 6)]), infos)
+    assert buffer.full and buffer.pos == 2
+    profile = buffer_reward_profile(buffer, window=3)
+    assert [(w["start"], w["end"], w["falls"]) for w in profile["windows"]] == [(0, 3, 1), (3, 5, 0)]
+    assert profile["windows"][0]["living_reward_mean"] == pytest.approx(2.5)  # transitions 2 and 3
+    assert profile["windows"][0]["fall_reward_mean"] == pytest.approx(4.0)  # transition 4; 6 is a time-out
+    assert profile["windows"][1]["living_reward_mean"] == pytest.approx(5.5)  # transitions 5 and 6
+    assert profile["fall_heights"]["max"] == 4.0  # the fall's next observation, first entry
+
+
 def test_reward_profile_command_refuses_a_folder_without_checkpoint(tmp_path: Path, capsys: Any) -> None:
     assert main(["reward-profile", str(tmp_path)]) == 2
-    assert "has no checkpoint to read: give a part-way run's folder" in capsys.readouterr().err
+    assert "has no checkpoint/ folder: give a part-way run's folder" in capsys.readouterr().err
     assert not (tmp_path / REWARD_PROFILE_FILE).exists()
+    assert main(["reward-profile", str(tmp_path / "typo")]) == 2
+    assert not (tmp_path / "typo").exists()  # nothing is created for a mistyped folder
+
+
+def test_reward_profile_command_refuses_a_run_in_training_and_a_checkpoint_without_buffer(tmp_path: Path, capsys: Any) -> None:
+    from pearl_paper.reproduce.checkpoint import RunCheckpoint
+    from pearl_paper.reproduce.ownership import run_lock
+
+    _checkpointed_run(tmp_path, 1000)
+    with run_lock(tmp_path):  # another process training the run
+        assert main(["reward-profile", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "is being run by another process" in err and "Traceback" not in err
+    assert not (tmp_path / REWARD_PROFILE_FILE).exists()
+    checkpoint = RunCheckpoint(tmp_path)
+    state = checkpoint.read_state()
+    assert state is not None
+    state["files"] = {key: name for key, name in state["files"].items() if not key.startswith("replay")}
+    checkpoint.write_state(state)
+    assert main(["reward-profile", str(tmp_path)]) == 2
+    assert "holds no replay buffer" in capsys.readouterr().err

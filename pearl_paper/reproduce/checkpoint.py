@@ -128,9 +128,11 @@ class RunCheckpoint:
             model = algo_cls.load(self.folder / files["model"], env=env, device=device, strict_env=True)
         except EnvStateError as error:
             raise EnvStateError(f"{error}, or restart the run from zero with --force") from error
-        replay = self.replay_bytes(files) if hasattr(model, "load_replay_buffer") else None
-        if replay is not None:
-            model.load_replay_buffer(io.BytesIO(replay))
+        if hasattr(model, "load_replay_buffer"):
+            if "replay" in files:  # read from the file: its errors name it, and no second copy is held in memory
+                model.load_replay_buffer(self.folder / files["replay"])
+            elif "replay.part0" in files:
+                model.load_replay_buffer(io.BytesIO(self._joined(files, "replay")))
         if int(model.num_timesteps) != int(state["num_timesteps"]):
             raise ValueError(
                 f"{self.folder}: the model is at {model.num_timesteps} steps, the state says {state['num_timesteps']}: "
@@ -173,9 +175,10 @@ class RunCheckpoint:
 
     def replay_bytes(self, files: dict[str, str]) -> bytes | None:
         """
-        The replay buffer's pickled bytes, whole or joined from its parts, or None when the checkpoint holds none.
+        The replay buffer's pickled bytes, whole or joined from its parts (``compact`` and ``reward-profile``).
 
         :param files: the ``files`` of :meth:`read_state`'s state
+        :return: the bytes, or None when the checkpoint holds no replay buffer
         """
         if "replay" in files:
             return (self.folder / files["replay"]).read_bytes()

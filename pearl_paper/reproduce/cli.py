@@ -23,6 +23,7 @@ from pearl_paper.experiments import EXPERIMENTS, get_experiment
 from pearl_paper.experiments.spec import Experiment
 from pearl_paper.reproduce.checkpoint import resume_promise
 from pearl_paper.reproduce.layout import parse_seeds
+from pearl_paper.reproduce.ownership import RunLockedError
 from sb3_pearl.budgets import PRESETS
 from sb3_pearl.common.checks import output_folder_problem, positive_int
 
@@ -35,6 +36,14 @@ def check_results_dir(path: str) -> None:
     problem = output_folder_problem(path)
     if problem is not None:
         raise ValueError(f"--results-dir {path}: {problem}")
+
+
+def require_checkpoint(run: str) -> None:
+    """Refuse a folder that is not a part-way run's (no ``checkpoint/`` in it), before anything is created there."""
+    from pearl_paper.reproduce.checkpoint import CHECKPOINT_DIR
+
+    if not os.path.isdir(os.path.join(run, CHECKPOINT_DIR)):
+        raise ValueError(f"{run} has no {CHECKPOINT_DIR}/ folder: give a part-way run's folder")
 
 
 CONFIRM_RUNS = 200  # a larger plan needs --yes (a typo in --seeds must not start days of runs)
@@ -313,12 +322,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{len(written)} run(s) remeasured")
             return 0
         if args.command == "compact":
-            from pearl_paper.reproduce.checkpoint import CHECKPOINT_DIR, RunCheckpoint
+            from pearl_paper.reproduce.checkpoint import RunCheckpoint
             from pearl_paper.reproduce.ownership import run_lock
 
             for run in args.runs:
-                if not os.path.isdir(os.path.join(run, CHECKPOINT_DIR)):
-                    raise ValueError(f"{run} has no {CHECKPOINT_DIR}/ folder: give a part-way run's folder")
+                require_checkpoint(run)
                 with run_lock(Path(run), wait_s=0.0):  # never under a run that is training
                     before, after = RunCheckpoint(run).compact_replay()
                 print(f"{run}: replay buffer {before / 1e6:.0f} MB -> {after / 1e6:.0f} MB")
@@ -328,6 +336,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             from pearl_paper.reproduce.reward_profile import checkpoint_reward_profile
 
             for run in args.runs:
+                require_checkpoint(run)  # before the lock, which would create a mistyped folder
                 with run_lock(Path(run), wait_s=0.0):  # never under a run that is training
                     path = checkpoint_reward_profile(run, args.window)
                 print(f"{run}: wrote {path}")
@@ -344,7 +353,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             written = measure_experiments(args.results_dir, args.experiments, chosen, args.family, args.force)
             print(f"{len(written)} run(s) measured")
             return 0
-    except ValueError as error:
+    except (ValueError, RunLockedError) as error:  # a bad argument, or a run that another process is training
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -32,9 +32,15 @@ from pearl_paper.reproduce.cells import cell_stats, last_k, seed_values  # noqa:
 from pearl_paper.reproduce.curve import curve_value  # noqa: E402
 
 
-def save_figure(fig: Any, path: str | os.PathLike[str]) -> None:
-    """Lay the figure out, write it as a PNG (110 dpi, the project's figures) and free it."""
-    fig.tight_layout()
+def save_figure(fig: Any, path: str | os.PathLike[str], rect: tuple[float, float, float, float] | None = None) -> None:
+    """
+    Lay the figure out, write it as a PNG (110 dpi, the project's figures) and free it.
+
+    :param fig: the matplotlib figure
+    :param path: PNG path
+    :param rect: the area the axes fill (``tight_layout``'s; None: all of it), e.g. to leave room for a legend below
+    """
+    fig.tight_layout(rect=rect)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -331,9 +337,7 @@ def plot_prior_selection(
     fig.legend(handles=ax_cal.get_legend_handles_labels()[0] + handles, fontsize=8, loc="lower center", ncol=3)
     if title:
         fig.suptitle(title)
-    fig.tight_layout(rect=(0.0, 0.16, 1.0, 1.0))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, rect=(0.0, 0.16, 1.0, 1.0))
     return True
 
 

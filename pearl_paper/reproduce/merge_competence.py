@@ -59,7 +59,14 @@ def merge_run(rows: Sequence[Mapping[str, Any]], seed: int) -> MergeRun:
 
 
 def read_merge_runs(results_dir: str | os.PathLike[str], experiment: str, variant: str) -> list[MergeRun]:
-    """The finished runs of one variant on Highway-Merge (the variant's runs live in the experiment that owns them)."""
+    """
+    The finished runs of one variant on Highway-Merge, in seed order (runs without a result left out).
+
+    :param results_dir: root of the results layout
+    :param experiment: the experiment that declares the variant (its runs may live in another that owns them)
+    :param variant: the variant name
+    :return: the runs
+    """
     spec = get_experiment(experiment)
     owner = spec.owner(variant)
     runs = []
@@ -72,7 +79,7 @@ def read_merge_runs(results_dir: str | os.PathLike[str], experiment: str, varian
 
 @dataclass(frozen=True)
 class MergeVerdicts:
-    """Rule 3's verdicts: the oracle's and each judged meta-learner's, with the means they rest on."""
+    """Rule 3's verdicts in words: the oracle's, and each judged meta-learner's (label -> verdict)."""
 
     oracle: str
     competent: dict[str, str]
@@ -83,7 +90,9 @@ def _mean(runs: Sequence[MergeRun], name: str) -> float:
 
 
 def merge_verdicts(
-    runs: Mapping[str, Sequence[MergeRun]], rules: CompetenceRules = COMPETENCE_RULES, n_oracle_seeds: int = 3
+    runs: Mapping[str, Sequence[MergeRun]],
+    rules: CompetenceRules = COMPETENCE_RULES,
+    n_oracle_seeds: int = len(ORACLE_MERGE.seeds),
 ) -> MergeVerdicts:
     """
     Apply rule 3 to the runs of the oracle (key ``"oracle"``) and of the judged meta-learners.
@@ -124,7 +133,7 @@ def merge_competence_section(results_dir: str | os.PathLike[str], rules: Compete
     if not runs["oracle"]:
         return []
     runs.update({label: read_merge_runs(results_dir, exp, variant) for label, exp, variant in MERGE_JUDGED_RUNS})
-    verdicts = merge_verdicts(runs, rules, len(ORACLE_MERGE.seeds))
+    verdicts = merge_verdicts(runs, rules)
     oracle_failure = _mean(runs["oracle"], "adapted_failure")
     oracle_return = _mean(runs["oracle"], "adapted_return")
     out = [

@@ -359,17 +359,17 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
             "",
         ]
         out += decision_section(confirmation)
-    competence = competence_section(results_dir)
-    if competence and plot_tracking(tracking_panels(results_dir), Path(figures_dir) / "oracle_tracking.png"):
+    figure: list[str] = []
+    if plot_tracking(tracking_panels(results_dir), Path(figures_dir) / "oracle_tracking.png"):
         link = f"{figures_link.rstrip('/')}/oracle_tracking.png"
-        competence += [
+        figure = [
             "Each held-out task's velocity error after adaptation against its target speed; an agent that tracks lies "
             "well below both references:",
             "",
             f"![held-out velocity error per task against the references]({link})",
             "",
         ]
-    out += competence
+    out += competence_section(results_dir, figure=figure)
     out += remeasured_section(results_dir)
     pages: dict[str, list[str]] = defaultdict(list)  # experiment name -> its page's lines
     page_figures = posixpath.join("..", figures_link.rstrip("/"))

@@ -13,8 +13,6 @@ folder (a small record to commit; the checkpoint it was read from is not).
 
 from __future__ import annotations
 
-import io
-import json
 import pickle
 from pathlib import Path
 from typing import Any
@@ -22,7 +20,8 @@ from typing import Any
 import numpy as np
 
 from pearl_paper.reproduce.checkpoint import RunCheckpoint
-from sb3_pearl.common.atomic import atomic_write
+from pearl_paper.reproduce.layout import write_json_atomic
+from sb3_pearl.evaluation.meta_test import json_value
 
 REWARD_PROFILE_FILE = "reward_profile.json"
 
@@ -40,7 +39,7 @@ def reward_profile(
     :param window: transitions per window (the last window may be shorter)
     :return: ``{"transitions", "falls", "window", "windows": [...], "fall_heights": {...}}``; each window holds
         ``start``, ``end``, ``falls``, ``falls_per_1k``, ``living_reward_mean``, ``fall_reward_mean`` (nan without a
-        fall), ``fall_share_of_reward_magnitude`` (sum of |r| over falls / sum of |r|)
+        fall; null in the file), ``fall_share_of_reward_magnitude`` (sum of |r| over falls / sum of |r|)
     """
     arrays = {"rewards": rewards, "dones": dones, "timeouts": timeouts, "next_heights": next_heights}
     n = len(rewards)
@@ -81,6 +80,36 @@ def reward_profile(
     }
 
 
+def buffer_reward_profile(buffer: Any, window: int) -> dict[str, Any]:
+    """
+    :func:`reward_profile` of an SB3 ``ReplayBuffer`` of one env, its transitions oldest first (a full buffer has
+    wrapped: the rows from ``pos`` on were written before those up to ``pos``).
+
+    :param buffer: the replay buffer
+    :param window: transitions per window
+    :return: the profile
+    """
+    name = type(buffer).__name__
+    if not all(hasattr(buffer, key) for key in ("rewards", "dones", "timeouts", "next_observations", "pos", "full")):
+        raise ValueError(f"the replay buffer is a {name}, not an SB3 ReplayBuffer of transitions")
+    if buffer.next_observations is None:
+        raise ValueError(f"the {name} keeps no next observations (optimize_memory_usage): the fall heights cannot be read")
+    if getattr(buffer, "n_envs", 1) != 1:
+        raise ValueError(f"the {name} holds {buffer.n_envs} envs' transitions; the profile reads a buffer of one env")
+    if buffer.full:
+        order = np.r_[buffer.pos : buffer.buffer_size, 0 : buffer.pos]
+    else:
+        order = np.arange(buffer.pos)
+    next_observations = buffer.next_observations.reshape(buffer.next_observations.shape[0], -1)  # (size, obs_dim)
+    return reward_profile(
+        buffer.rewards[order, 0],
+        buffer.dones[order, 0],
+        buffer.timeouts[order, 0],
+        next_observations[order, 0],
+        window,
+    )
+
+
 def checkpoint_reward_profile(run_folder: str | Path, window: int = 20_000) -> Path:
     """
     Write ``reward_profile.json`` into a part-way run's folder from its checkpoint's replay buffer.
@@ -94,29 +123,24 @@ def checkpoint_reward_profile(run_folder: str | Path, window: int = 20_000) -> P
     state = checkpoint.read_state()
     if state is None:
         raise ValueError(f"{run_folder} has no checkpoint to read: give a part-way run's folder")
+    damage = checkpoint.damage(state)
+    if damage is not None:
+        raise ValueError(f"{checkpoint.folder}: {damage}")
     data = checkpoint.replay_bytes(state.get("files") or {})
     if data is None:
         raise ValueError(f"{checkpoint.folder} holds no replay buffer (a learner with its own buffers per task?)")
-    buffer = pickle.load(io.BytesIO(data))
-    if getattr(buffer, "next_observations", None) is None or not hasattr(buffer, "timeouts"):
-        raise ValueError(f"{checkpoint.folder}: the replay buffer is a {type(buffer).__name__}, not an SB3 ReplayBuffer")
-    n = buffer.buffer_size if buffer.full else buffer.pos
-    if buffer.full:  # oldest first: the rows from pos on were written before those up to pos
-        order = np.r_[buffer.pos : buffer.buffer_size, 0 : buffer.pos]
-    else:
-        order = np.arange(n)
-    profile = reward_profile(
-        buffer.rewards[order, 0],
-        buffer.dones[order, 0],
-        buffer.timeouts[order, 0],
-        buffer.next_observations[order, 0, 0],
-        window,
-    )
+    try:
+        buffer = pickle.loads(data)
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as error:
+        raise ValueError(f"{checkpoint.folder}: its replay buffer does not unpickle ({error!r})") from None
+    try:
+        profile = buffer_reward_profile(buffer, window)
+    except ValueError as error:
+        raise ValueError(f"{checkpoint.folder}: {error}") from None
     profile["num_timesteps"] = int(state["num_timesteps"])
     path = Path(run_folder) / REWARD_PROFILE_FILE
-    with atomic_write(path, "w") as file:
-        json.dump(profile, file, indent=1)
+    write_json_atomic(path, json_value(profile))  # nan (a window without falls) as null
     return path
 
 
-__all__ = ["REWARD_PROFILE_FILE", "checkpoint_reward_profile", "reward_profile"]
+__all__ = ["REWARD_PROFILE_FILE", "buffer_reward_profile", "checkpoint_reward_profile", "reward_profile"]

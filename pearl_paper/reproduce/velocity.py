@@ -312,7 +312,9 @@ def tracking_panels(results_dir: str | os.PathLike[str]) -> list[dict[str, Any]]
     return panels
 
 
-def competence_section(results_dir: str | os.PathLike[str], rules: CompetenceRules = COMPETENCE_RULES) -> list[str]:
+def competence_section(
+    results_dir: str | os.PathLike[str], rules: CompetenceRules = COMPETENCE_RULES, figure: Sequence[str] = ()
+) -> list[str]:
     """
     The markdown of competence against the oracle: per oracle family with a record, the references, the oracle's and
     each judged meta-learner's held-out velocity error (k >= 1, per target-speed bin, k = 0), falls and return, and
@@ -321,6 +323,7 @@ def competence_section(results_dir: str | os.PathLike[str], rules: CompetenceRul
 
     :param results_dir: root of the results layout
     :param rules: the rules
+    :param figure: lines shown after the velocity families' tables (the report's tracking figure), when there are any
     :return: the lines
     """
     out: list[str] = []
@@ -354,16 +357,23 @@ def competence_section(results_dir: str | os.PathLike[str], rules: CompetenceRul
                 f"| {np.mean(returns):.1f} | {verdict} |"
             )
         out += [""]
+    if out:
+        out = [
+            "The velocity families: the held-out velocity error (m/s) of each run's committed model (`python -m "
+            f"pearl_paper.reproduce velocity`): 20 held-out tasks x 2 repeats, deterministic, k = 0..{rules.n_adapt}; means "
+            f"over seeds. A meta-learner is competent if its error is at most {rules.oracle_ratio} x the oracle's and at "
+            f"most {rules.constant_fraction} x the best constant.",
+            "",
+            *out,
+            *figure,
+        ]
     out += merge_competence_section(results_dir, rules)
     if not out:
         return []
     return [
         "### Competence against the oracle",
         "",
-        "Rules committed before the oracle's runs: `pearl_paper/experiments/oracle.py`. The held-out velocity error (m/s) "
-        "of each run's committed model (`python -m pearl_paper.reproduce velocity`): 20 held-out tasks x 2 repeats, "
-        f"deterministic, k = 0..{rules.n_adapt}; means over seeds. A meta-learner is competent if its error is at most "
-        f"{rules.oracle_ratio} x the oracle's and at most {rules.constant_fraction} x the best constant.",
+        "Rules committed before the oracle's runs: `pearl_paper/experiments/oracle.py`.",
         "",
         *out,
     ]
