@@ -344,3 +344,19 @@ def test_oracle_families_shift_only_the_task_ranges(family) -> None:
         env.reset(seed=0)
         _, reward, _, _, info = env.step(np.zeros(env.action_space.shape))
         assert reward == pytest.approx(4.0 + info["reward_forward"] + info["reward_ctrl"] + info["reward_contact"])
+
+
+def test_a_calibration_family_is_reported_without_the_learnability_rule(tmp_path) -> None:
+    """The learner calibration (one target) shows its error, not a verdict: its best constant is the target itself."""
+    import json
+
+    from pearl_paper.experiments.oracle import CALIBRATIONS
+    from pearl_paper.reproduce.velocity import VELOCITY_FILE, competence_section
+
+    (family,) = CALIBRATIONS
+    folder = tmp_path / "oracle" / family / "oracle" / "seed0"
+    folder.mkdir(parents=True)
+    (folder / VELOCITY_FILE).write_text(json.dumps(_record(0, {0: 0.5, 1: 0.5}, [[2.9], [2.95], [3.0]])))
+    text = "\n".join(competence_section(tmp_path))
+    assert "**not judged: a calibration of the learner (one target), read its error and falls**" in text
+    assert "| Oracle (1) | 0.600 [0.600, 0.600] |" in text and "not learnable" not in text

@@ -128,6 +128,20 @@ ANT3D_VEL_FORWARD_SPREAD = dataclasses.replace(
     shift_env_kwargs={"speed_low": 3.0, "speed_high": 4.0, "unhealthy_penalty": 0.0},  # the family's reward terms kept
     shift_description="target speeds U[3, 4] m/s along +x (training U[0, 3]); healthy reward 4, no fall penalty",
 )
+# A calibration of the learner, declared while the third candidate's oracle ran (at 164k env steps its training-task
+# error was 1.16-1.23 m/s, its return per step that of a standing ant): one target, 2.9-3.0 m/s forward, with the third
+# candidate's reward. Below 3 m/s, -|v - v*| + 4 is v + 1 minus a constant: Gymnasium's Ant forward-running task
+# (forward velocity plus a healthy reward of 1) at rllab's control cost, in the family's 200-step episodes. If SAC at
+# PEARL's networks and this budget does not learn to run here either, the learner's budget (networks, env steps), not
+# the family's tasks, is what keeps every Ant oracle standing; if it runs, tracking many targets is the hard part.
+ANT3D_VEL_RUN = dataclasses.replace(
+    ANT3D_VEL_FORWARD_SPREAD,
+    name="ant3d-vel-run",
+    title="Ant-3D-Vel, one forward target of 2.9-3.0 m/s, healthy reward 4, no fall penalty (learner calibration), 500k steps",
+    env_kwargs={**ANT3D_VEL_FORWARD_SPREAD.env_kwargs, "speed_low": 2.9, "speed_high": 3.0},
+    shift_env_kwargs={"speed_low": 3.0, "speed_high": 4.0, "unhealthy_penalty": 0.0},
+    shift_description="target speeds U[3, 4] m/s along +x (training U[2.9, 3]); healthy reward 4, no fall penalty",
+)
 ANT3D_VEL_ORACLE = dataclasses.replace(ANT3D_VEL_LONG, budget_family="ant3d-vel-oracle")
 CHEETAH_VEL_ORACLE = dataclasses.replace(HALF_CHEETAH_VEL, budget_family="cheetah-vel-oracle")
 HIGHWAY_MERGE_ORACLE = dataclasses.replace(HIGHWAY_MERGE, budget_family="highway-merge-oracle")
@@ -147,6 +161,7 @@ ORACLE = Experiment(
         ANT3D_VEL_LOW_CTRL,
         ANT3D_VEL_FORWARD,
         ANT3D_VEL_FORWARD_SPREAD,
+        ANT3D_VEL_RUN,
     ),
     variants=(ORACLE_VARIANT,),
     seeds=(0, 1, 2),
@@ -207,8 +222,13 @@ SPEED_BINS: dict[str, tuple[float, ...]] = {
     ANT3D_VEL_LOW_CTRL.name: (0.0, 1.0, 2.0, float("inf")),
     ANT3D_VEL_FORWARD.name: (0.0, 1.0, 2.0, float("inf")),
     ANT3D_VEL_FORWARD_SPREAD.name: (0.0, 1.0, 2.0, float("inf")),
+    ANT3D_VEL_RUN.name: (0.0, 1.0, 2.0, float("inf")),
 }
 """Target-speed bin edges of the per-bin velocity error, per family."""
+
+CALIBRATIONS: tuple[str, ...] = (ANT3D_VEL_RUN.name,)
+"""Oracle families that calibrate the learner (one target: the best constant is the target itself), reported without the
+learnability rule."""
 
 JUDGED_RUNS: dict[str, tuple[tuple[str, str, str], ...]] = {
     WALKER2D_VEL_LONG.name: (("PEARL", "pearl-reference", "pearl"), ("PEARL+", "walker-table1", "pearlplus")),
@@ -217,6 +237,7 @@ JUDGED_RUNS: dict[str, tuple[tuple[str, str, str], ...]] = {
     ANT3D_VEL_LOW_CTRL.name: (),
     ANT3D_VEL_FORWARD.name: (),
     ANT3D_VEL_FORWARD_SPREAD.name: (),
+    ANT3D_VEL_RUN.name: (),
 }
 """Per oracle family, the meta-learners' runs judged against the oracle: (label, experiment, variant), on the same
 family, eval seed and held-out tasks (the runs listed in the module docstring)."""

@@ -25,7 +25,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from pearl_paper.experiments.oracle import COMPETENCE_RULES, JUDGED_RUNS, ORACLE, SPEED_BINS, CompetenceRules
+from pearl_paper.experiments.oracle import (
+    CALIBRATIONS,
+    COMPETENCE_RULES,
+    JUDGED_RUNS,
+    ORACLE,
+    SPEED_BINS,
+    CompetenceRules,
+)
 from pearl_paper.experiments.spec import Family
 from pearl_paper.reproduce.layout import RESULT_FILE, read_run_result, write_json_atomic
 from pearl_paper.reproduce.merge_competence import merge_competence_section
@@ -312,6 +319,12 @@ def tracking_panels(results_dir: str | os.PathLike[str]) -> list[dict[str, Any]]
     return panels
 
 
+def _bin_cell(values: Sequence[float]) -> str:
+    """A per-bin cell: the mean over seeds of the bin's error, "-" where no held-out target falls in the bin."""
+    finite = [value for value in values if math.isfinite(value)]
+    return f"{np.mean(finite):.3f}" if finite else "-"
+
+
 def competence_section(
     results_dir: str | os.PathLike[str], rules: CompetenceRules = COMPETENCE_RULES, figure: Sequence[str] = ()
 ) -> list[str]:
@@ -332,7 +345,9 @@ def competence_section(
         decision = family_verdicts(family.name, records, rules)
         constant = decision.references["best_constant"]
         bins = list(next(iter(decision.runs["oracle"])).by_bin)
-        if len(oracle) < len(ORACLE.seeds):
+        if family.name in CALIBRATIONS:
+            decision.learnable = "not judged: a calibration of the learner (one target), read its error and falls"
+        elif len(oracle) < len(ORACLE.seeds):
             decision.learnable += f" (provisional: {len(oracle)} of {len(ORACLE.seeds)} oracle seeds)"
         out += [
             f"#### {family.title}",
@@ -352,7 +367,7 @@ def competence_section(
             out.append(
                 f"| {'Oracle' if label == 'oracle' else label} ({len(runs)}) | {np.mean(adapted):.3f} "
                 f"[{min(adapted):.3f}, {max(adapted):.3f}] | "
-                + " | ".join(f"{np.nanmean([run.by_bin[b] for run in runs]):.3f}" for b in bins)
+                + " | ".join(_bin_cell([run.by_bin[b] for run in runs]) for b in bins)
                 + f" | {decision.mean(label, 'prior'):.3f} | {100 * decision.mean(label, 'adapted_violation'):.1f}% "
                 f"| {np.mean(returns):.1f} | {verdict} |"
             )
