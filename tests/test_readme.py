@@ -418,3 +418,22 @@ def test_the_demo_reads_the_remeasured_record_or_falls_back_for_every_run(tmp_pa
     shutil.copy(found[0] / "meta_test_large.json", found[1] / "meta_test_large.json")  # seed 0's record as seed 1's
     with pytest.raises(ValueError, match="its folder says 'seed1'"):
         demo.remeasured_meta_test(found[1])
+
+
+def test_the_headline_holds_the_fresh_seed_confirmation() -> None:
+    """The README's confirmation row holds the fresh-seed verdict as the rules compute it from seeds 10-19 alone."""
+    from pearl_paper.reproduce.table1_verdicts import decide_confirmation
+
+    decision = decide_confirmation(demo.default_results_dir())
+    assert decision.paired_seeds == list(range(10, 20))
+    assert decision.prior_interval is not None and decision.adapted_interval is not None
+    prior, adapted = decision.prior_interval, decision.adapted_interval
+    readme = README.read_text()
+    headline = readme[readme.index("<!-- headline:begin") : readme.index("<!-- headline:end")]
+    row = next(line for line in headline.splitlines() if line.startswith("| Highway-Merge confirmed on fresh seeds"))
+    assert f"{100 * prior.mean:+.1f} points [{100 * prior.low:+.1f}, {100 * prior.high:+.1f}]".lstrip("+") in row
+    assert f"{adapted.mean:+.2f} [{adapted.low:+.2f}, {adapted.high:+.2f}]".lstrip("+") in row
+    assert f"margin -{decision.adapted_margin:.2f}" in row
+    verdict = row.rsplit("|", 2)[1]
+    assert ("**safer prior**" in verdict) == (decision.prior_verdict == "safer")
+    assert ("**adapted as good**" in verdict) == (decision.adapted_verdict == "as good")
