@@ -306,7 +306,7 @@ def test_tracking_panels_and_figure_from_the_velocity_records(tmp_path) -> None:
     import json
 
     from pearl_paper.reproduce.figures import plot_tracking
-    from pearl_paper.reproduce.velocity import VELOCITY_FILE, tracking_panels
+    from pearl_paper.reproduce.velocity import VELOCITY_FILE, oracle_family_records, tracking_panels
 
     targets = [[0.0], [1.0], [3.0]]  # best constant 1.0: errors 1, 0, 2
     for experiment, variant, seed, adapted in (
@@ -317,7 +317,7 @@ def test_tracking_panels_and_figure_from_the_velocity_records(tmp_path) -> None:
         folder = tmp_path / experiment / "walker2d-vel-long" / variant / f"seed{seed}"
         folder.mkdir(parents=True)
         (folder / VELOCITY_FILE).write_text(json.dumps(_record(seed, {0: 5.0, 1: adapted, 2: adapted}, targets)))
-    (panel,) = tracking_panels(tmp_path)
+    (panel,) = tracking_panels(oracle_family_records(tmp_path))
     np.testing.assert_allclose(panel["speeds"], [0.0, 1.0, 3.0])
     np.testing.assert_allclose(panel["constant_errors"], [1.0, 0.0, 2.0])
     assert list(panel["errors"]) == ["Oracle (1)", "PEARL (2)"]

@@ -325,7 +325,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
     )
     from pearl_paper.reproduce.remeasured_tables import remeasured_section
     from pearl_paper.reproduce.table1_verdicts import decide, decide_confirmation, decision_section
-    from pearl_paper.reproduce.velocity import competence_section, tracking_panels
+    from pearl_paper.reproduce.velocity import competence_section, oracle_family_records, tracking_panels
 
     groups = load_groups(results_dir)
     out = [
@@ -360,7 +360,8 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         ]
         out += decision_section(confirmation)
     figure: list[str] = []
-    if plot_tracking(tracking_panels(results_dir), Path(figures_dir) / "oracle_tracking.png"):
+    velocity_records = oracle_family_records(results_dir)
+    if plot_tracking(tracking_panels(velocity_records), Path(figures_dir) / "oracle_tracking.png"):
         link = f"{figures_link.rstrip('/')}/oracle_tracking.png"
         figure = [
             "Each held-out task's velocity error after adaptation against its target speed; an agent that tracks lies "
@@ -369,7 +370,7 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
             f"![held-out velocity error per task against the references]({link})",
             "",
         ]
-    out += competence_section(results_dir, figure=figure)
+    out += competence_section(results_dir, figure=figure, found=velocity_records)
     out += remeasured_section(results_dir)
     pages: dict[str, list[str]] = defaultdict(list)  # experiment name -> its page's lines
     page_figures = posixpath.join("..", figures_link.rstrip("/"))

@@ -254,7 +254,11 @@ def read_records(results_dir: str | os.PathLike[str], experiment: str, family: s
     return [read_json(path) for path in sorted(paths, key=lambda path: int(path.parent.name[4:]))]
 
 
-def oracle_family_records(results_dir: str | os.PathLike[str]) -> list[tuple[Family, dict[str, list[dict[str, Any]]]]]:
+FamilyRecords = list[tuple[Family, dict[str, list[dict[str, Any]]]]]
+"""What :func:`oracle_family_records` returns: (family, label -> velocity records) per oracle family with a record."""
+
+
+def oracle_family_records(results_dir: str | os.PathLike[str]) -> FamilyRecords:
     """
     The velocity records of each oracle family with an oracle record: ``"oracle"``'s, then those of the runs
     :data:`~pearl_paper.experiments.oracle.JUDGED_RUNS` names (labels without a record left out).
@@ -292,15 +296,15 @@ def per_task_errors(records: Sequence[Mapping[str, Any]]) -> np.ndarray:
     return np.divide(sums, counts, out=np.full(n_tasks, math.nan), where=counts > 0)
 
 
-def tracking_panels(results_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
+def tracking_panels(found: FamilyRecords) -> list[dict[str, Any]]:
     """
     The panels of :func:`~pearl_paper.reproduce.figures.plot_tracking`: per oracle family with a record, each held-out
     task's target speed, the best constant's error on it and each agent's adapted error (seeds and repeats averaged).
 
-    :param results_dir: root of the results layout
+    :param found: the records, as :func:`oracle_family_records` reads them
     """
     panels = []
-    for family, records in oracle_family_records(results_dir):
+    for family, records in found:
         targets = np.asarray(records["oracle"][0]["targets"], dtype=np.float64).reshape(
             len(records["oracle"][0]["targets"]), -1
         )
@@ -326,7 +330,10 @@ def _bin_cell(values: Sequence[float]) -> str:
 
 
 def competence_section(
-    results_dir: str | os.PathLike[str], rules: CompetenceRules = COMPETENCE_RULES, figure: Sequence[str] = ()
+    results_dir: str | os.PathLike[str],
+    rules: CompetenceRules = COMPETENCE_RULES,
+    figure: Sequence[str] = (),
+    found: FamilyRecords | None = None,
 ) -> list[str]:
     """
     The markdown of competence against the oracle: per oracle family with a record, the references, the oracle's and
@@ -337,10 +344,11 @@ def competence_section(
     :param results_dir: root of the results layout
     :param rules: the rules
     :param figure: lines shown after the velocity families' tables (the report's tracking figure), when there are any
+    :param found: the velocity records already read by :func:`oracle_family_records` (None: read them)
     :return: the lines
     """
     out: list[str] = []
-    for family, records in oracle_family_records(results_dir):
+    for family, records in oracle_family_records(results_dir) if found is None else found:
         oracle = records["oracle"]
         decision = family_verdicts(family.name, records, rules)
         constant = decision.references["best_constant"]
