@@ -242,6 +242,23 @@ def test_table1_shows_the_fine_tune_and_maml_columns_beside_the_paper(tmp_path: 
     assert decision.prior_verdict != "pending"  # the columns change nothing of the rules
     rows = [line for line in decision_section([decision]) if "Fine-Tune" in line or "MAML" in line]
     assert rows[0].startswith("| paper: Fine-Tune | 14.5 | 14.8 | 14.1 | 13.7 |")
-    # k = 0: 10% and 20% -> mean 15, sd 7.07, t(0.975, 1) = 12.71 -> half-width 63.5 points
-    assert rows[1].startswith("| ours: Fine-Tune (2 seeds) | 15.0 [-48.5, 78.5] | ")
+    # k = 0: 10% and 20% -> mean 15, sd 7.07, t(0.975, 1) = 12.71 -> half-width 63.5 points, [-48.5, 78.5]
+    assert rows[1].startswith("| ours: Fine-Tune (2 seeds) | 15.0 [0.0, 78.5] | ")  # clipped to a rate's range
     assert rows[3] == "| ours: MAML | pending | pending | pending | pending | pending |"
+    # the differences to PEARL and PEARL+ on the own meta-tests (PEARL's own k = 0: 50%): -40 and -30 points, mean
+    # -35, half-width 12.71 x 7.07 / sqrt(2) = 63.5; equal k = 5 returns; no sign-flip interval at 2 seeds
+    assert rows[4] == (
+        "- Fine-Tune - PEARL, fixed entropy 1, reward scale 5 (reported, no rule; own meta-tests, paired seeds [0, 1]): "
+        "k = 0 violation rate -35.0 [-98.5, +28.5] points (t), k = 5 return +0.00 [+0.00, +0.00] (t)."
+    )
+    assert rows[5].startswith("- Fine-Tune - PEARL+ (alpha 0.1)") and len(rows) == 6
+    assert "- The sign-flip intervals are the whole range at 2 seeds (the smallest p-value of 2 signs is 2 / 2^2 = 0.500)" in (
+        "\n".join(decision_section([decision]))
+    )
+
+
+def test_the_columns_sign_flip_intervals_appear_where_the_seeds_can_reject() -> None:
+    """At 6 seeds a sign-flip test can reject (2 / 64 < 0.05); at 5 it cannot (2 / 32 > 0.05)."""
+    from pearl_paper.reproduce.table1_verdicts import _sign_flip_can_reject
+
+    assert _sign_flip_can_reject(6, 0.95) and not _sign_flip_can_reject(5, 0.95)

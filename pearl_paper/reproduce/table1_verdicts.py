@@ -412,14 +412,20 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             if not runs:
                 out.append(f"| ours: {label} | " + " | ".join("pending" for _ in PAPER_KS) + " | pending |")
                 continue
-            cells = []
+            cells, flips = [], []
             for k in PAPER_KS:
                 rates = [run.summary[k]["violation_rate"] for run in runs.values() if k in run.summary]
-                rate = t_interval(rates)
-                cells.append(
-                    f"{_pct(rate.mean)} [{_pct(rate.low)}, {_pct(rate.high)}]" if len(rates) >= 2 else _pct(rate.mean)
+                rate = t_interval(rates, rules.confidence)
+                flip = sign_flip_interval(rates, rules.confidence, bounds=(0.0, 1.0))
+                cells.append(  # the t interval clipped to the range a rate can take
+                    f"{_pct(rate.mean)} [{_pct(max(rate.low, 0.0))}, {_pct(min(rate.high, 1.0))}]"
+                    if len(rates) >= 2
+                    else _pct(rate.mean)
                 )
+                flips.append(f"[{_pct(flip.low)}, {_pct(flip.high)}]" if len(rates) >= 2 else "-")
             out.append(f"| ours: {label} ({len(runs)} seeds) | {' | '.join(cells)} | {_num(_mean(runs, 5, 'return_mean'))} |")
+            if len(runs) >= 2 and _sign_flip_can_reject(len(runs), rules.confidence):
+                out.append(f"| ours: {label}, sign-flip interval | {' | '.join(flips)} | - |")
         out += ["", "Per seed, k = 0 violation rate % [Wilson 95%] (old 200-trajectory meta-test where re-measured):", ""]
         out += ["| seed | " + " | ".join(experiment.variant(n).label for n in decision.variants) + " |", "|---|---|---|"]
         for seed in sorted(set(decision.runs[reference]) | set(decision.runs[variant])):
@@ -436,8 +442,65 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
                     cell += f" (old {_pct(run.own_summary[0]['violation_rate'])})"
                 cells.append(cell)
             out.append(f"| {seed} | " + " | ".join(cells) + " |")
-        out += ["", *decision_lines(decision, rules), ""]
+        out += ["", *decision_lines(decision, rules), *column_lines(decision, rules), ""]
     return out
+
+
+def column_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list[str]:
+    """
+    The Fine-Tune and MAML columns against the decided pair, reported and not decided
+    (:mod:`pearl_paper.experiments.table1_columns`): per column and per reference (PEARL, PEARL+), the paired k = 0
+    violation difference and k = 5 return difference over their common seeds, with the t and the sign-flip intervals.
+    Both sides come from the runs' own meta-tests (the same held-out tasks, env seeds and prior draws), so a re-measured
+    family's PEARL numbers here are its old meta-test's.
+
+    :param decision: the family's decision, its columns loaded
+    :param rules: the confidence of the intervals
+    :return: markdown bullets (none before two paired seeds)
+    """
+    experiment = get_experiment(decision.experiment)
+    adapted_k = rules.adapted_k
+    out = []
+    flip_note = ""
+    for name, runs in decision.columns.items():
+        label = {"finetune": "Fine-Tune", "maml": "MAML"}.get(name, name)
+        for reference in decision.variants:
+            against = decision.runs[reference]
+            seeds = sorted(set(runs) & set(against))
+            if len(seeds) < 2:
+                continue
+            prior = paired_differences(
+                {s: runs[s].own_summary[0]["violation_rate"] for s in seeds},
+                {s: against[s].own_summary[0]["violation_rate"] for s in seeds},
+            )
+            adapted = paired_differences(
+                {s: runs[s].own_summary[adapted_k]["return_mean"] for s in seeds},
+                {s: against[s].own_summary[adapted_k]["return_mean"] for s in seeds},
+            )
+            prior_values, adapted_values = list(prior.values()), list(adapted.values())
+            prior_flip = adapted_flip = ""
+            if _sign_flip_can_reject(len(seeds), rules.confidence):
+                prior_flip = f"; sign-flip {_bounds(sign_flip_interval(prior_values, rules.confidence, (-1.0, 1.0)), 100)}"
+                adapted_flip = f"; sign-flip {_bounds(sign_flip_interval(adapted_values, rules.confidence), 1, 2)}"
+            else:
+                flip_note = (
+                    f" The sign-flip intervals are the whole range at {len(seeds)} seeds (the smallest p-value of "
+                    f"{len(seeds)} signs is 2 / 2^{len(seeds)} = {2 / 2 ** len(seeds):.3f}), for the cells too: the t "
+                    "intervals above (the cells' clipped to 0-100%) assume normal per-seed values."
+                )
+            out.append(
+                f"- {label} - {experiment.variant(reference).label} (reported, no rule; own meta-tests, paired seeds "
+                f"{seeds}): k = 0 violation rate {_interval(t_interval(prior_values, rules.confidence), 100)} points "
+                f"(t{prior_flip}), k = {adapted_k} return {_interval(t_interval(adapted_values, rules.confidence), 1, 2)} "
+                f"(t{adapted_flip})."
+            )
+    return [*out, f"-{flip_note}"] if flip_note else out
+
+
+def _sign_flip_can_reject(n: int, confidence: float) -> bool:
+    """Whether a sign-flip test on ``n`` values can reject anything at ``1 - confidence``: its smallest p-value is
+    2 / 2^n."""
+    return 2.0 / 2.0**n <= 1.0 - confidence
 
 
 def decision_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list[str]:
