@@ -440,12 +440,12 @@ def test_the_headline_holds_the_fresh_seed_confirmation() -> None:
 
 
 def test_the_headline_holds_table_1s_four_columns_on_the_merge() -> None:
-    """The README's four-column Highway-Merge table holds, per column, the committed runs' own meta-test numbers: the
-    seed count, k = 0 and k = 5 failure rates and the k = 5 return, each with its t interval over seeds (rates clipped
-    to 0-100), and the paper's cells."""
+    """The README's four-column Highway-Merge table holds, per column, the committed runs' own meta-test numbers as the
+    report's cells compute them: the seed count, k = 0 and k = 5 failure rates with their intervals, the k = 5 return
+    with its t interval over seeds, and the paper's cells."""
     from pearl_paper.experiments.table1 import TABLE1
     from pearl_paper.reproduce.stats import t_interval
-    from pearl_paper.reproduce.table1_verdicts import decide
+    from pearl_paper.reproduce.table1_verdicts import decide, rate_cell
 
     decision = next(d for d in decide(demo.default_results_dir()) if d.family == "highway-merge")
     columns = {"Fine-Tune": decision.columns["finetune"], "MAML": decision.columns["maml"]}
@@ -456,16 +456,11 @@ def test_the_headline_holds_table_1s_four_columns_on_the_merge() -> None:
     for label, runs in columns.items():
         row = next(line for line in headline.splitlines() if line.startswith(f"| {label} ({len(runs)}) |"))
         cells = [cell.strip() for cell in row.strip("|").split("|")][1:]
-
-        def rate(k: int, runs: dict = runs) -> str:
-            interval = t_interval([run.own_summary[k]["violation_rate"] for run in runs.values()])
-            return f"{100 * interval.mean:.1f} [{100 * max(interval.low, 0.0):.1f}, {100 * min(interval.high, 1.0):.1f}]"
-
         returns = t_interval([run.own_summary[5]["return_mean"] for run in runs.values()])
         paper = {c.k: c.value for c in TABLE1.paper if c.family == "highway-merge" and c.variant == paper_names[label]}
         assert cells == [
-            rate(0),
-            rate(5),
+            rate_cell([run.own_summary[0] for run in runs.values()]),
+            rate_cell([run.own_summary[5] for run in runs.values()]),
             f"{returns.mean:.2f} [{returns.low:.2f}, {returns.high:.2f}]",
             f"{100 * paper[0]:.1f} / {100 * paper[5]:.1f}",
         ], label

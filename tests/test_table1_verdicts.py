@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from pearl_paper.reproduce.table1_verdicts import (
     decide_family,
     decision_lines,
     decision_section,
+    load_run,
     reductions,
 )
 
@@ -252,13 +254,42 @@ def test_table1_shows_the_fine_tune_and_maml_columns_beside_the_paper(tmp_path: 
         "k = 0 violation rate -35.0 [-98.5, +28.5] points (t), k = 5 return +0.00 [+0.00, +0.00] (t)."
     )
     assert rows[5].startswith("- Fine-Tune - PEARL+ (alpha 0.1)") and len(rows) == 6
-    assert "- The sign-flip intervals are the whole range at 2 seeds (the smallest p-value of 2 signs is 2 / 2^2 = 0.500)" in (
+    assert "cannot exclude anything at 2 paired seeds or fewer (the smallest p-value of 2 signs is 2 / 2^2 = 0.500)" in (
         "\n".join(decision_section([decision]))
     )
 
 
-def test_the_columns_sign_flip_intervals_appear_where_the_seeds_can_reject() -> None:
-    """At 6 seeds a sign-flip test can reject (2 / 64 < 0.05); at 5 it cannot (2 / 32 > 0.05)."""
-    from pearl_paper.reproduce.table1_verdicts import _sign_flip_can_reject
-
-    assert _sign_flip_can_reject(6, 0.95) and not _sign_flip_can_reject(5, 0.95)
+def test_the_columns_sign_flip_intervals_appear_where_the_seeds_can_reject(tmp_path: Path) -> None:
+    """At 6 seeds a sign-flip test can reject (2 / 64 < 0.05), at 5 it cannot (2 / 32 > 0.05): a column of 6 seeds gets
+    its sign-flip row and its differences their sign-flip intervals; equal rates on every seed get the pooled Wilson
+    interval instead of a t interval of width 0."""
+    (owner, name), (plus_owner, plus) = MERGE
+    for seed in range(6):
+        write_run(tmp_path, owner, "highway-merge", name, seed, summary(0.10, 0.0, -8.0), summary(0.10, 0.0, -7.6))
+        write_run(tmp_path, plus_owner, "highway-merge", plus, seed, summary(0.05, 0.0, -8.0), summary(0.02, 0.0, -7.6))
+        # Fine-Tune: k = 0 rate 0 on every seed, k >= 1 rates 1-6%, returns 1.0-1.5 below PEARL's
+        write_run(
+            tmp_path, "merge-columns", "highway-merge", "finetune", seed, summary(0.0, 0.01 * (seed + 1), -9.0 - 0.1 * seed)
+        )
+    decision = decide_family("highway-merge", tmp_path)
+    assert set(decision.columns["finetune"]) == {0, 1, 2, 3}  # the seeds table1_columns declares; here, six
+    decision.columns["finetune"] = {
+        seed: load_run(run_dir(tmp_path, RunKey("merge-columns", "highway-merge", "finetune", seed)), False)
+        for seed in range(6)
+    }
+    lines = decision_section([decision])
+    text = "\n".join(lines)
+    # k = 0: 0 of 6 x 200 trajectories -> Wilson [0, 0.32%]
+    assert "| ours: Fine-Tune (6 seeds) | 0.0 [0.0, 0.3] (Wilson, 1200 pooled) | 3.5 [" in text
+    flip_row = next(line for line in lines if line.startswith("| ours: Fine-Tune, sign-flip interval |"))
+    cells = [cell.strip() for cell in flip_row.strip("|").split("|")]
+    assert cells[1] == "[0.0, 0.0]" and cells[2] != "-"  # all-zero k = 0: the interval is the point; k = 1 bounded
+    low, high = (float(x) for x in cells[2].strip("[]").split(", "))
+    assert 0.0 <= low < 3.5 < high <= 100.0
+    bullet = next(line for line in lines if line.startswith("- Fine-Tune - PEARL, fixed entropy"))
+    # k = 0 differences: 0 - 10% on every seed -> -10.0 points exactly, interval of width 0 both ways
+    assert "k = 0 violation rate -10.0 [-10.0, -10.0] points (t; sign-flip [-10.0, -10.0])" in bullet
+    # k = 5 return differences -1.0 ... -1.5 (mean -1.25): every sign-flip bound lies within the values' range
+    flip = re.search(r"return -1\.25 \[[^]]+\] \(t; sign-flip \[([-+.\d]+), ([-+.\d]+)\]\)", bullet)
+    assert flip is not None and -1.5 <= float(flip.group(1)) < -1.25 < float(flip.group(2)) <= -1.0
+    assert "cannot exclude anything" not in text

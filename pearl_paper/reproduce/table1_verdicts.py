@@ -23,6 +23,7 @@ from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, read_run_result, r
 from pearl_paper.reproduce.remeasure import read_remeasured as read_remeasured_record
 from pearl_paper.reproduce.stats import Interval, paired_differences, sign_flip_interval, t_interval
 from sb3_pearl.budgets import load_budget
+from sb3_pearl.evaluation.statistics import wilson_interval
 
 PAPER_KS = (0, 1, 3, 5)
 SAFER, LESS_SAFE = "safer", "less safe"
@@ -361,6 +362,26 @@ def _mean(runs: dict[int, RunNumbers], k: int, key: str, own: bool = False) -> f
     return sum(values) / len(values) if values else math.nan
 
 
+def rate_cell(entries: list[dict[str, Any]], rules: DecisionRules = RULES) -> str:
+    """
+    One Table I cell of a column over seeds: the mean violation rate (%) and its t interval over the seeds, clipped to
+    0-100; where every seed has the same rate (a t interval of width 0 says nothing), the Wilson interval of all the
+    seeds' trajectories pooled instead, marked so.
+
+    :param entries: one meta-test summary entry per seed at this k (``violation_rate``, ``n``)
+    :param rules: the confidence of the interval
+    """
+    rates = [float(entry["violation_rate"]) for entry in entries]
+    if len(rates) < 2:
+        return _pct(rates[0]) if rates else "-"
+    if max(rates) == min(rates):
+        n = sum(int(entry["n"]) for entry in entries)
+        low, high = wilson_interval(round(sum(rate * int(entry["n"]) for rate, entry in zip(rates, entries))), n)
+        return f"{_pct(rates[0])} [{_pct(low)}, {_pct(high)}] (Wilson, {n} pooled)"
+    rate = t_interval(rates, rules.confidence)
+    return f"{_pct(rate.mean)} [{_pct(max(rate.low, 0.0))}, {_pct(min(rate.high, 1.0))}]"
+
+
 def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RULES) -> list[str]:
     """The markdown of the decisions (one table per family, then the verdicts)."""
     from pearl_paper.experiments.table1 import TABLE1
@@ -412,19 +433,15 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             if not runs:
                 out.append(f"| ours: {label} | " + " | ".join("pending" for _ in PAPER_KS) + " | pending |")
                 continue
-            cells, flips = [], []
-            for k in PAPER_KS:
-                rates = [run.summary[k]["violation_rate"] for run in runs.values() if k in run.summary]
-                rate = t_interval(rates, rules.confidence)
-                flip = sign_flip_interval(rates, rules.confidence, bounds=(0.0, 1.0))
-                cells.append(  # the t interval clipped to the range a rate can take
-                    f"{_pct(rate.mean)} [{_pct(max(rate.low, 0.0))}, {_pct(min(rate.high, 1.0))}]"
-                    if len(rates) >= 2
-                    else _pct(rate.mean)
-                )
-                flips.append(f"[{_pct(flip.low)}, {_pct(flip.high)}]" if len(rates) >= 2 else "-")
+            cells = [rate_cell([run.own_summary[k] for run in runs.values() if k in run.own_summary], rules) for k in PAPER_KS]
             out.append(f"| ours: {label} ({len(runs)} seeds) | {' | '.join(cells)} | {_num(_mean(runs, 5, 'return_mean'))} |")
-            if len(runs) >= 2 and _sign_flip_can_reject(len(runs), rules.confidence):
+            flips = []
+            for k in PAPER_KS:
+                rates = [run.own_summary[k]["violation_rate"] for run in runs.values() if k in run.own_summary]
+                can_reject = len(rates) >= 2 and _sign_flip_can_reject(len(rates), rules.confidence)
+                flip = sign_flip_interval(rates, rules.confidence, bounds=(0.0, 1.0)) if can_reject else None
+                flips.append(f"[{_pct(flip.low)}, {_pct(flip.high)}]" if flip is not None else "-")
+            if any(flip != "-" for flip in flips):
                 out.append(f"| ours: {label}, sign-flip interval | {' | '.join(flips)} | - |")
         out += ["", "Per seed, k = 0 violation rate % [Wilson 95%] (old 200-trajectory meta-test where re-measured):", ""]
         out += ["| seed | " + " | ".join(experiment.variant(n).label for n in decision.variants) + " |", "|---|---|---|"]
@@ -461,7 +478,7 @@ def column_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list
     experiment = get_experiment(decision.experiment)
     adapted_k = rules.adapted_k
     out = []
-    flip_note = ""
+    too_few: set[int] = set()  # paired seed counts at which a sign-flip test cannot reject
     for name, runs in decision.columns.items():
         label = {"finetune": "Fine-Tune", "maml": "MAML"}.get(name, name)
         for reference in decision.variants:
@@ -483,18 +500,21 @@ def column_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list
                 prior_flip = f"; sign-flip {_bounds(sign_flip_interval(prior_values, rules.confidence, (-1.0, 1.0)), 100)}"
                 adapted_flip = f"; sign-flip {_bounds(sign_flip_interval(adapted_values, rules.confidence), 1, 2)}"
             else:
-                flip_note = (
-                    f" The sign-flip intervals are the whole range at {len(seeds)} seeds (the smallest p-value of "
-                    f"{len(seeds)} signs is 2 / 2^{len(seeds)} = {2 / 2 ** len(seeds):.3f}), for the cells too: the t "
-                    "intervals above (the cells' clipped to 0-100%) assume normal per-seed values."
-                )
+                too_few.add(len(seeds))
             out.append(
                 f"- {label} - {experiment.variant(reference).label} (reported, no rule; own meta-tests, paired seeds "
                 f"{seeds}): k = 0 violation rate {_interval(t_interval(prior_values, rules.confidence), 100)} points "
                 f"(t{prior_flip}), k = {adapted_k} return {_interval(t_interval(adapted_values, rules.confidence), 1, 2)} "
                 f"(t{adapted_flip})."
             )
-    return [*out, f"-{flip_note}"] if flip_note else out
+    if too_few:
+        n = max(too_few)
+        out.append(
+            f"- Where a difference shows no sign-flip interval, it cannot exclude anything at {n} paired seeds or fewer "
+            f"(the smallest p-value of {n} signs is 2 / 2^{n} = {2 / 2**n:.3f}); the t interval assumes normal per-seed "
+            "differences."
+        )
+    return out
 
 
 def _sign_flip_can_reject(n: int, confidence: float) -> bool:
