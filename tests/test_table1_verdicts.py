@@ -13,7 +13,7 @@ import pytest
 from pearl_paper.experiments.table1_rules import MERGE_REMEASURE, RULES, PremiseGate
 from pearl_paper.reproduce.layout import RunKey, run_dir
 from pearl_paper.reproduce.report import build_report
-from pearl_paper.reproduce.stats import sign_flip_interval, sign_flip_p_value
+from pearl_paper.reproduce.stats import sign_flip_can_reject, sign_flip_interval, sign_flip_p_value
 from pearl_paper.reproduce.table1_verdicts import (
     AS_GOOD,
     INCONCLUSIVE,
@@ -192,6 +192,8 @@ def test_sign_flip_interval_by_hand() -> None:
     assert sign_flip_p_value(np.array([1.0, 2, 3, 4, 5, 6])) == pytest.approx(2 / 64)
     # at 4 seeds the smallest p-value is 2 / 16 > 5%: no shift is rejected, the interval is the quantity's range
     assert sign_flip_interval([0.1, 0.2, 0.3, 0.4], bounds=(-1.0, 1.0))[1:3] == (-1.0, 1.0)
+    # so the test can reject from 6 values (2 / 64 <= 5%), not at 5 (2 / 32 > 5%)
+    assert sign_flip_can_reject(6, 0.95) and not sign_flip_can_reject(5, 0.95)
     # ten differences: a finite interval holding the mean, inside the data's range, mirrored for mirrored data
     values = np.array([-3.2, -1.0, -5.0, 2.0, -4.0, -6.0, -1.0, -2.0, 1.3, -3.0])
     interval = sign_flip_interval(values)

@@ -239,6 +239,18 @@ def sign_flip_interval(
     return Interval(mean, low, high, n)
 
 
+def sign_flip_can_reject(n: int, confidence: float = 0.95) -> bool:
+    """
+    Whether the sign-flip test of :func:`sign_flip_p_value` on ``n`` values can reject anything at ``1 - confidence``:
+    its smallest p-value is 2 / 2^n (the identity pattern and its mirror), so below that count
+    :func:`sign_flip_interval` is the whole range whatever the values.
+
+    :param n: the number of paired differences
+    :param confidence: coverage
+    """
+    return 2.0 / 2.0**n <= 1.0 - confidence
+
+
 def paired_differences(variant: Mapping[int, float], reference: Mapping[int, float]) -> dict[int, float]:
     """
     Per-seed differences ``variant - reference`` over the seeds both have.

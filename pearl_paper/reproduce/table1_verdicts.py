@@ -21,7 +21,7 @@ from pearl_paper.experiments import get_experiment
 from pearl_paper.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
 from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
 from pearl_paper.reproduce.remeasure import read_remeasured as read_remeasured_record
-from pearl_paper.reproduce.stats import Interval, paired_differences, sign_flip_interval, t_interval
+from pearl_paper.reproduce.stats import Interval, paired_differences, sign_flip_can_reject, sign_flip_interval, t_interval
 from sb3_pearl.budgets import load_budget
 from sb3_pearl.evaluation.statistics import wilson_interval
 
@@ -362,6 +362,13 @@ def _mean(runs: dict[int, RunNumbers], k: int, key: str, own: bool = False) -> f
     return sum(values) / len(values) if values else math.nan
 
 
+def _column_label(name: str) -> str:
+    """A Fine-Tune or MAML column's label, as :mod:`pearl_paper.experiments.table1_columns` declares its variant."""
+    from pearl_paper.experiments.table1_columns import COLUMNS
+
+    return next(variant.label for variant in COLUMNS if variant.name == name)
+
+
 def rate_cell(entries: list[dict[str, Any]], rules: DecisionRules = RULES) -> str:
     """
     One Table I cell of a column over seeds: the mean violation rate (%) and its t interval over the seeds, clipped to
@@ -428,19 +435,22 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
                 out.append(f"| ours, old meta-test (200 a k): {label} | {old} | {_num(_mean(runs, 5, 'return_mean', True))} |")
         for name, runs in decision.columns.items():  # Table I's other columns: reported, no rule
             paper = {cell.k: cell.value for cell in TABLE1.paper if cell.family == paper_family and cell.variant == name}
-            label = {"finetune": "Fine-Tune", "maml": "MAML"}.get(name, name)
+            label = _column_label(name)
             out.append(f"| paper: {label} | " + " | ".join(_pct(paper.get(k, math.nan)) for k in PAPER_KS) + " | - |")
             if not runs:
                 out.append(f"| ours: {label} | " + " | ".join("pending" for _ in PAPER_KS) + " | pending |")
                 continue
-            cells = [rate_cell([run.own_summary[k] for run in runs.values() if k in run.own_summary], rules) for k in PAPER_KS]
-            out.append(f"| ours: {label} ({len(runs)} seeds) | {' | '.join(cells)} | {_num(_mean(runs, 5, 'return_mean'))} |")
-            flips = []
+            cells, flips = [], []
             for k in PAPER_KS:
-                rates = [run.own_summary[k]["violation_rate"] for run in runs.values() if k in run.own_summary]
-                can_reject = len(rates) >= 2 and _sign_flip_can_reject(len(rates), rules.confidence)
-                flip = sign_flip_interval(rates, rules.confidence, bounds=(0.0, 1.0)) if can_reject else None
-                flips.append(f"[{_pct(flip.low)}, {_pct(flip.high)}]" if flip is not None else "-")
+                entries = [run.own_summary[k] for run in runs.values() if k in run.own_summary]
+                cells.append(rate_cell(entries, rules))
+                if len(entries) >= 2 and sign_flip_can_reject(len(entries), rules.confidence):
+                    rates = [entry["violation_rate"] for entry in entries]
+                    flip = sign_flip_interval(rates, rules.confidence, bounds=(0.0, 1.0))
+                    flips.append(f"[{_pct(flip.low)}, {_pct(flip.high)}]")
+                else:
+                    flips.append("-")
+            out.append(f"| ours: {label} ({len(runs)} seeds) | {' | '.join(cells)} | {_num(_mean(runs, 5, 'return_mean'))} |")
             if any(flip != "-" for flip in flips):
                 out.append(f"| ours: {label}, sign-flip interval | {' | '.join(flips)} | - |")
         out += ["", "Per seed, k = 0 violation rate % [Wilson 95%] (old 200-trajectory meta-test where re-measured):", ""]
@@ -480,7 +490,7 @@ def column_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list
     out = []
     too_few: set[int] = set()  # paired seed counts at which a sign-flip test cannot reject
     for name, runs in decision.columns.items():
-        label = {"finetune": "Fine-Tune", "maml": "MAML"}.get(name, name)
+        label = _column_label(name)
         for reference in decision.variants:
             against = decision.runs[reference]
             seeds = sorted(set(runs) & set(against))
@@ -496,7 +506,7 @@ def column_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list
             )
             prior_values, adapted_values = list(prior.values()), list(adapted.values())
             prior_flip = adapted_flip = ""
-            if _sign_flip_can_reject(len(seeds), rules.confidence):
+            if sign_flip_can_reject(len(seeds), rules.confidence):
                 prior_flip = f"; sign-flip {_bounds(sign_flip_interval(prior_values, rules.confidence, (-1.0, 1.0)), 100)}"
                 adapted_flip = f"; sign-flip {_bounds(sign_flip_interval(adapted_values, rules.confidence), 1, 2)}"
             else:
@@ -515,12 +525,6 @@ def column_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list
             "differences."
         )
     return out
-
-
-def _sign_flip_can_reject(n: int, confidence: float) -> bool:
-    """Whether a sign-flip test on ``n`` values can reject anything at ``1 - confidence``: its smallest p-value is
-    2 / 2^n."""
-    return 2.0 / 2.0**n <= 1.0 - confidence
 
 
 def decision_lines(decision: FamilyDecision, rules: DecisionRules = RULES) -> list[str]:
