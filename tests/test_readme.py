@@ -14,6 +14,7 @@ target; ``make demo`` runs in :func:`test_make_demo_defaults_are_runnable` and :
 from __future__ import annotations
 
 import ast
+import itertools
 import os
 import re
 import shlex
@@ -439,28 +440,45 @@ def test_the_headline_holds_the_fresh_seed_confirmation() -> None:
     assert ("**adapted as good**" in verdict) == (decision.adapted_verdict == "as good")
 
 
-def test_the_headline_holds_table_1s_four_columns_on_the_merge() -> None:
-    """The README's four-column Highway-Merge table holds, per column, the committed runs' own meta-test numbers as the
+@pytest.mark.parametrize(("family", "table"), [("highway-merge", "Highway-Merge"), ("walker2d-vel-long", "Walker2D-vel")])
+def test_the_headline_holds_table_1s_four_columns(family: str, table: str) -> None:
+    """The README's four-column table of a family holds, per column, the committed runs' own meta-test numbers as the
     report's cells compute them: the seed count, k = 0 and k = 5 failure rates with their intervals, the k = 5 return
-    with its t interval over seeds, and the paper's cells."""
+    with its t interval over seeds (the value alone at one seed), and the paper's cells; a column without runs says
+    that it is pending."""
     from pearl_paper.experiments.table1 import TABLE1
     from pearl_paper.reproduce.stats import t_interval
     from pearl_paper.reproduce.table1_verdicts import decide, rate_cell
 
-    decision = next(d for d in decide(demo.default_results_dir()) if d.family == "highway-merge")
+    decision = next(d for d in decide(demo.default_results_dir()) if d.family == family)
     columns = {"Fine-Tune": decision.columns["finetune"], "MAML": decision.columns["maml"]}
     columns |= {"PEARL": decision.runs[decision.variants[0]], "PEARL+": decision.runs[decision.variants[1]]}
     paper_names = {"Fine-Tune": "finetune", "MAML": "maml", "PEARL": "pearl", "PEARL+": "pearlplus"}
+    paper_family = "walker2d-vel" if family.startswith("walker2d-vel") else family
     readme = README.read_text()
     headline = readme[readme.index("<!-- headline:begin") : readme.index("<!-- headline:end")]
+    lines = headline.splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith(f"| {table} column (seeds) |"))
+    rows = list(itertools.takewhile(lambda line: line.startswith("|"), lines[first:]))
+    assert len(rows) == 2 + len(columns), table
     for label, runs in columns.items():
-        row = next(line for line in headline.splitlines() if line.startswith(f"| {label} ({len(runs)}) |"))
+        paper = {c.k: c.value for c in TABLE1.paper if c.family == paper_family and c.variant == paper_names[label]}
+        paper_cell = f"{100 * paper[0]:.1f} / {100 * paper[5]:.1f}"
+        if not runs:
+            row = next(line for line in rows if line.startswith(f"| {label} (pending) |"))
+            assert [cell.strip() for cell in row.strip("|").split("|")][1:] == ["pending"] * 3 + [paper_cell], label
+            continue
+        row = next(line for line in rows if line.startswith(f"| {label} ({len(runs)}) |"))
         cells = [cell.strip() for cell in row.strip("|").split("|")][1:]
-        returns = t_interval([run.own_summary[5]["return_mean"] for run in runs.values()])
-        paper = {c.k: c.value for c in TABLE1.paper if c.family == "highway-merge" and c.variant == paper_names[label]}
+        returns = [run.own_summary[5]["return_mean"] for run in runs.values()]
+        if len(returns) > 1:
+            interval = t_interval(returns)
+            return_cell = f"{interval.mean:.2f} [{interval.low:.2f}, {interval.high:.2f}]"
+        else:
+            return_cell = f"{returns[0]:.2f}"
         assert cells == [
             rate_cell([run.own_summary[0] for run in runs.values()]),
             rate_cell([run.own_summary[5] for run in runs.values()]),
-            f"{returns.mean:.2f} [{returns.low:.2f}, {returns.high:.2f}]",
-            f"{100 * paper[0]:.1f} / {100 * paper[5]:.1f}",
+            return_cell,
+            paper_cell,
         ], label

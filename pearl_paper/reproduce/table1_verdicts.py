@@ -335,6 +335,10 @@ def _pct(value: float) -> str:
     return "-" if not math.isfinite(value) else f"{100 * value:.1f}"
 
 
+def _seeds(n: int) -> str:
+    return f"{n} seed{'' if n == 1 else 's'}"
+
+
 def _num(value: float) -> str:
     return "-" if not math.isfinite(value) else f"{value:.2f}"
 
@@ -429,7 +433,7 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             runs = decision.runs[name]
             out.append(f"| paper: {label} | " + " | ".join(_pct(paper.get(k, math.nan)) for k in PAPER_KS) + " | - |")
             ours = " | ".join(_pct(_mean(runs, k, "violation_rate")) for k in PAPER_KS)
-            out.append(f"| ours: {label} ({len(runs)} seeds) | {ours} | {_num(_mean(runs, 5, 'return_mean'))} |")
+            out.append(f"| ours: {label} ({_seeds(len(runs))}) | {ours} | {_num(_mean(runs, 5, 'return_mean'))} |")
             if decision.family == "highway-merge":
                 old = " | ".join(_pct(_mean(runs, k, "violation_rate", own=True)) for k in PAPER_KS)
                 out.append(f"| ours, old meta-test (200 a k): {label} | {old} | {_num(_mean(runs, 5, 'return_mean', True))} |")
@@ -450,7 +454,8 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
                     flips.append(f"[{_pct(flip.low)}, {_pct(flip.high)}]")
                 else:
                     flips.append("-")
-            out.append(f"| ours: {label} ({len(runs)} seeds) | {' | '.join(cells)} | {_num(_mean(runs, 5, 'return_mean'))} |")
+            returns = _num(_mean(runs, 5, "return_mean"))
+            out.append(f"| ours: {label} ({_seeds(len(runs))}) | {' | '.join(cells)} | {returns} |")
             if any(flip != "-" for flip in flips):
                 out.append(f"| ours: {label}, sign-flip interval | {' | '.join(flips)} | - |")
         out += ["", "Per seed, k = 0 violation rate % [Wilson 95%] (old 200-trajectory meta-test where re-measured):", ""]
