@@ -295,7 +295,10 @@ def test_run_notes_seeds_a_variant_does_not_declare(tmp_path: Path, capsys: pyte
     args = ["run", "merge-table3", "--variants", "alpha-0-fixed-entropy", "alpha-1-fixed-entropy", "--seeds", "3-5"]
     assert main([*args, "--dry-run", "--results-dir", str(tmp_path)]) == 0
     err = capsys.readouterr().err
-    assert "merge-table3 does not declare seeds [4, 5] for alpha-1-fixed-entropy (its seeds: [0, 1, 2, 3])" in err
+    assert (
+        "merge-table3 does not declare seeds [4, 5] for alpha-1-fixed-entropy on highway-merge (its seeds there: [0, 1, 2, 3])"
+        in err
+    )
     assert "for alpha-0-fixed-entropy" not in err  # alpha 0 declares Table I's 10 seeds
 
 
@@ -765,7 +768,7 @@ def test_a_variant_may_declare_its_own_seeds() -> None:
     ]
     runs = plan_runs(table3, "cpu", [7], None, ["alpha-0-fixed-entropy", "alpha-5-fixed-entropy"])
     assert [(run.variant, run.seed) for run in runs] == [("alpha-0-fixed-entropy", 7), ("alpha-5-fixed-entropy", 7)]
-    assert undeclared_seeds(table3, runs) == {"alpha-5-fixed-entropy": [7]}  # alpha 5 declares 0-3: the report skips 7
+    assert undeclared_seeds(table3, runs) == {("highway-merge", "alpha-5-fixed-entropy"): [7]}  # alpha 5: 0-3 only
     assert undeclared_seeds(table3, plan_runs(table3, "cpu", None, None, None)) == {}
     with pytest.raises(ValueError, match="variant_seeds names unknown variants"):
         dataclasses.replace(table3, variant_seeds={"alpha-7": (0,)})
@@ -774,6 +777,27 @@ def test_a_variant_may_declare_its_own_seeds() -> None:
     for bad in ((), (1, 1), (-1, 2)):  # nothing to run, one run twice, a folder the report's seed pattern skips
         with pytest.raises(ValueError, match="must be distinct integers >= 0, at least one"):
             dataclasses.replace(table3, variant_seeds={"alpha-0-fixed-entropy": bad})
+
+
+def test_a_family_may_declare_its_own_seeds() -> None:
+    """The oracle's Ant3D-vel candidates and its calibration are declared at one seed, the families a meta-learner is
+    judged on at three: a run without --seeds plans each family's seeds, --seeds beyond them is noted as undeclared,
+    and a bad family_seeds entry is refused like a bad variant_seeds one."""
+    from pearl_paper.reproduce.scheduler import plan_runs, undeclared_seeds
+
+    oracle = get_experiment("oracle")
+    assert oracle.seeds_of("oracle", "walker2d-vel-long") == (0, 1, 2) == oracle.seeds_of("oracle")
+    assert oracle.seeds_of("oracle", "ant3d-vel-fwd-spread-2m") == (0,)
+    runs = plan_runs(oracle, "cpu", None, ["walker2d-vel-long", "ant3d-vel-run"])
+    assert [(run.family, run.seed) for run in runs] == [("walker2d-vel-long", s) for s in range(3)] + [("ant3d-vel-run", 0)]
+    runs = plan_runs(oracle, "cpu", [0, 1], ["walker2d-vel-long", "ant3d-vel-run"])
+    assert undeclared_seeds(oracle, runs) == {("ant3d-vel-run", "oracle"): [1]}
+    with pytest.raises(ValueError, match="family_seeds names unknown families"):
+        dataclasses.replace(oracle, family_seeds={"ant3d-vel-nope": (0,)})
+    with pytest.raises(ValueError, match="must be distinct integers >= 0, at least one"):
+        dataclasses.replace(oracle, family_seeds={"ant3d-vel-run": ()})
+    with pytest.raises(ValueError, match="must differ from the model seeds"):
+        dataclasses.replace(oracle, family_seeds={"ant3d-vel-run": (oracle.eval_seed,)})
 
 
 def test_remeasure_repeats_the_runs_own_meta_test_and_adds_draws(results: Path, tmp_path: Path) -> None:

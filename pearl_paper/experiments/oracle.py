@@ -184,6 +184,18 @@ ORACLE = Experiment(
     ),
     variants=(ORACLE_VARIANT,),
     seeds=(0, 1, 2),
+    # the Ant3D-vel candidates and the learner's calibration are declared at one seed each (PROJECTED_CORE_HOURS): each
+    # asks whether an oracle can track on that definition or budget; the family a meta-learner is judged on runs at 3
+    family_seeds={
+        family.name: (0,)
+        for family in (
+            ANT3D_VEL_LOW_CTRL,
+            ANT3D_VEL_FORWARD,
+            ANT3D_VEL_FORWARD_SPREAD,
+            ANT3D_VEL_RUN,
+            ANT3D_VEL_FORWARD_SPREAD_2M,
+        )
+    },
     budget="cpu",
     eval_seed=PEARL_REFERENCE.eval_seed,
     reference="oracle",

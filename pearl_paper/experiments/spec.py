@@ -265,6 +265,9 @@ class Experiment:
     :param seeds: default model seeds
     :param variant_seeds: variants declared with other seeds than ``seeds``, ``{variant: seeds}`` (e.g. two rows
         of Tables II and III at Table I's 10 seeds, the others at theirs); see :meth:`seeds_of`
+    :param family_seeds: families declared with other seeds than the variants', ``{family: seeds}`` (e.g. candidate
+        redefinitions of a family, each declared at one seed beside the families run at three); they take precedence
+        over ``variant_seeds`` on that family
     :param budget: default budget preset
     :param eval_seed: the fixed meta-test seed: the test tasks are ``sample_tasks(n_tasks, eval_seed)``
         of the family env, the same for every variant and model seed (common random numbers); also
@@ -293,6 +296,7 @@ class Experiment:
     variants: tuple[Variant, ...]
     seeds: tuple[int, ...] = (0, 1, 2, 3)
     variant_seeds: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
+    family_seeds: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
     budget: str = "cpu"
     eval_seed: int = 1_000_003
     reference: str = "pearl"
@@ -330,14 +334,17 @@ class Experiment:
         unknown = sorted(set(self.variant_seeds) - variants)
         if unknown:
             raise ValueError(f"experiment {self.name}: variant_seeds names unknown variants {unknown}")
-        for name in sorted(variants):
-            seeds = self.seeds_of(name)
+        unknown = sorted(set(self.family_seeds) - families)
+        if unknown:
+            raise ValueError(f"experiment {self.name}: family_seeds names unknown families {unknown}")
+        declared = {name: self.seeds_of(name) for name in sorted(variants)} | dict(sorted(self.family_seeds.items()))
+        for name, seeds in declared.items():
             if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
                 raise ValueError(
                     f"experiment {self.name}: the seeds of {name} must be distinct integers >= 0, at least one; got "
                     f"{list(seeds)}"
                 )
-        if any(self.eval_seed in self.seeds_of(v) for v in variants):
+        if any(self.eval_seed in seeds for seeds in declared.values()):
             raise ValueError(f"experiment {self.name}: eval_seed {self.eval_seed} must differ from the model seeds")
         items: list[PaperCell | Claim] = [*self.paper, *self.claims]
         for item in items:
@@ -348,8 +355,16 @@ class Experiment:
                     f"(families {sorted(families)}, variants {sorted(variants)})"
                 )
 
-    def seeds_of(self, variant: str) -> tuple[int, ...]:
-        """The model seeds declared for ``variant``: its own (``variant_seeds``), else the experiment's."""
+    def seeds_of(self, variant: str, family: str | None = None) -> tuple[int, ...]:
+        """
+        The model seeds declared for ``variant`` (on ``family``): the family's own (``family_seeds``), else the
+        variant's (``variant_seeds``), else the experiment's.
+
+        :param variant: a variant name
+        :param family: a family name (None: the variant's seeds on a family without seeds of its own)
+        """
+        if family is not None and family in self.family_seeds:
+            return tuple(self.family_seeds[family])
         return tuple(self.variant_seeds.get(variant, self.seeds))
 
     def owner(self, variant: str) -> str:

@@ -112,14 +112,14 @@ def _shared_and_declared(groups: dict[tuple[str, str, str], Group]) -> dict[tupl
                 if owner == experiment_name and variant in group and (other.name, budget, family) in groups:
                     groups[(other.name, budget, family)][variant] = group[variant]
 
-    def declared(experiment_name: str, variant: str, seeds: dict[int, dict[str, Any]]) -> dict[int, dict[str, Any]]:
-        experiment = EXPERIMENTS.get(experiment_name)
+    def declared(key: tuple[str, str, str], variant: str, seeds: dict[int, dict[str, Any]]) -> dict[int, dict[str, Any]]:
+        experiment = EXPERIMENTS.get(key[0])
         if experiment is None:
             return dict(seeds)
-        return {seed: r for seed, r in seeds.items() if seed in experiment.seeds_of(variant)}
+        return {seed: r for seed, r in seeds.items() if seed in experiment.seeds_of(variant, key[2])}
 
     kept = {
-        key: {variant: runs for variant, seeds in group.items() if (runs := declared(key[0], variant, seeds))}
+        key: {variant: runs for variant, seeds in group.items() if (runs := declared(key, variant, seeds))}
         for key, group in sorted(groups.items())
     }
     return {key: group for key, group in kept.items() if group}

@@ -176,6 +176,8 @@ def _list() -> None:
         print(f"  default seeds {list(experiment.seeds)}, budget {experiment.budget}, eval seed {experiment.eval_seed}")
         for variant, seeds in experiment.variant_seeds.items():
             print(f"  seeds of {variant}: {list(seeds)}")
+        for family, seeds in experiment.family_seeds.items():
+            print(f"  seeds on {family}: {list(seeds)}")
     print(f"budget presets: {', '.join(PRESETS)} (sb3_pearl/config/presets/)")
 
 
@@ -225,10 +227,10 @@ def _run(args: argparse.Namespace) -> int:
     if variants is None and experiment.after_selection:
         variants = _variants_after_selection(experiment, budget, args.results_dir)
     planned = plan_runs(experiment, budget, seeds, args.family, variants)  # every name and override checked
-    for variant, extra in undeclared_seeds(experiment, planned).items():
+    for (family, variant), extra in undeclared_seeds(experiment, planned).items():
         print(
-            f"note: {experiment.name} does not declare seeds {extra} for {variant} (its seeds: "
-            f"{list(experiment.seeds_of(variant))}); they run, but the report leaves them out",
+            f"note: {experiment.name} does not declare seeds {extra} for {variant} on {family} (its seeds there: "
+            f"{list(experiment.seeds_of(variant, family))}); they run, but the report leaves them out",
             file=sys.stderr,
         )
     if not args.dry_run:

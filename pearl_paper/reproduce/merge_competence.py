@@ -70,8 +70,9 @@ def read_merge_runs(results_dir: str | os.PathLike[str], experiment: str, varian
     spec = get_experiment(experiment)
     owner = spec.owner(variant)
     runs = []
-    for seed in spec.seeds_of(variant):
-        path = run_dir(results_dir, RunKey(owner, ORACLE_MERGE.families[0].name, variant, seed)) / RESULT_FILE
+    family = ORACLE_MERGE.families[0].name
+    for seed in spec.seeds_of(variant, family):
+        path = run_dir(results_dir, RunKey(owner, family, variant, seed)) / RESULT_FILE
         if path.is_file():
             runs.append(merge_run(read_run_result(path)["meta_test"]["rows"], seed))
     return runs

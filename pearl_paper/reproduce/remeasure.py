@@ -318,7 +318,7 @@ def measure_finished_runs(
             if families is not None and not families(family.name):
                 continue
             for variant in experiment.variants:
-                for seed in experiment.seeds_of(variant.name) if seeds is None else seeds:
+                for seed in experiment.seeds_of(variant.name, family.name) if seeds is None else seeds:
                     key = RunKey(experiment.owner(variant.name), family.name, variant.name, seed)
                     folders[run_dir(root, key)] = None
     written: list[Path] = []

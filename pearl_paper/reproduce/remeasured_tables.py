@@ -43,7 +43,7 @@ def load_remeasured(
     missing: dict[str, list[int]] = {}
     for variant in experiment.variants:
         runs[variant.name], missing[variant.name] = {}, []
-        for seed in experiment.seeds_of(variant.name):
+        for seed in experiment.seeds_of(variant.name, FAMILY):
             folder = run_dir(results_dir, RunKey(experiment.owner(variant.name), FAMILY, variant.name, seed))
             numbers = load_run(folder, read_remeasured=True)
             if numbers is not None:
@@ -92,7 +92,7 @@ def remeasured_table(experiment_name: str, results_dir: str | os.PathLike[str]) 
         else:
             diffs = paired_differences(k0, reference_k0)
             paired = f"{_cell(diffs, 100)} ({len(diffs)} seeds)" if diffs else "-"
-        declared = len(experiment.seeds_of(variant.name))
+        declared = len(experiment.seeds_of(variant.name, FAMILY))
         own_k0 = _values(mine, 0, "violation_rate", own=True)
         returns = [_cell(_values(mine, ADAPTED_K, "return_mean", own=own), digits=2) for own in (False, True)]
         lines.append(

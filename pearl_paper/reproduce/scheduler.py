@@ -84,7 +84,7 @@ def plan_runs(
 
     :param experiment: the experiment
     :param budget_preset: the budget preset
-    :param seeds: model seeds (None: each variant's declared seeds, :meth:`Experiment.seeds_of`)
+    :param seeds: model seeds (None: each variant's declared seeds on each family, :meth:`Experiment.seeds_of`)
     :param families: family names (None: all of the experiment's)
     :param variants: variant names (None: all)
     :return: the runs, family by family, variant by variant, seed by seed
@@ -106,25 +106,27 @@ def plan_runs(
         for variant in chosen_variants:
             budget = load_budget(budget_preset, family.budget_name, variant.algo)
             run_kwargs(budget, variant, f"{experiment.name} {family.name} (preset {budget_preset})")
-            chosen_seeds = experiment.seeds_of(variant.name) if seeds is None else seeds
+            chosen_seeds = experiment.seeds_of(variant.name, family.name) if seeds is None else seeds
             # a shared variant's runs live in (and are run as part of) the experiment that owns them
             runs.extend(RunKey(experiment.owner(variant.name), family.name, variant.name, seed) for seed in chosen_seeds)
     return runs
 
 
-def undeclared_seeds(experiment: Experiment, runs: Sequence[RunKey]) -> dict[str, list[int]]:
+def undeclared_seeds(experiment: Experiment, runs: Sequence[RunKey]) -> dict[tuple[str, str], list[int]]:
     """
-    The planned seeds each variant does not declare (:meth:`Experiment.seeds_of`): ``--seeds`` applies to every chosen
-    variant, and the report shows only a variant's declared seeds, so such a run trains but no table counts it.
+    The planned seeds a variant does not declare on a family (:meth:`Experiment.seeds_of`): ``--seeds`` applies to
+    every chosen variant and family, and the report shows only the declared seeds, so such a run trains but no table
+    counts it.
 
     :param experiment: the experiment
     :param runs: the planned runs (:func:`plan_runs`)
-    :return: variant name -> its undeclared seeds, in plan order (only variants that have some)
+    :return: (family, variant) -> its undeclared seeds, in plan order (only the pairs that have some)
     """
-    undeclared: dict[str, list[int]] = {}
+    undeclared: dict[tuple[str, str], list[int]] = {}
     for run in runs:
-        if run.seed not in experiment.seeds_of(run.variant) and run.seed not in undeclared.get(run.variant, []):
-            undeclared.setdefault(run.variant, []).append(run.seed)
+        extra = undeclared.get((run.family, run.variant), [])
+        if run.seed not in experiment.seeds_of(run.variant, run.family) and run.seed not in extra:
+            undeclared.setdefault((run.family, run.variant), []).append(run.seed)
     return undeclared
 
 

@@ -30,6 +30,7 @@ from pearl_paper.experiments.oracle import (
     COMPETENCE_RULES,
     JUDGED_RUNS,
     ORACLE,
+    ORACLE_VARIANT,
     SPEED_BINS,
     CompetenceRules,
 )
@@ -355,8 +356,8 @@ def competence_section(
         bins = list(next(iter(decision.runs["oracle"])).by_bin)
         if family.name in CALIBRATIONS:
             decision.learnable = "not judged: a calibration of the learner (one target), read its error and falls"
-        elif len(oracle) < len(ORACLE.seeds):
-            decision.learnable += f" (provisional: {len(oracle)} of {len(ORACLE.seeds)} oracle seeds)"
+        elif len(oracle) < (declared := len(ORACLE.seeds_of(ORACLE_VARIANT.name, family.name))):
+            decision.learnable += f" (provisional: {len(oracle)} of {declared} oracle seeds)"
         out += [
             f"#### {family.title}",
             "",
