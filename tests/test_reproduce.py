@@ -652,7 +652,8 @@ def test_curve_figure_panels_and_env_step_ticks() -> None:
 
 
 def test_the_report_draws_runs_in_progress_and_leaves_out_folders_that_are_not(tmp_path: Path) -> None:
-    """Part-way runs (checkpoint + curve.csv, no result.json) get a section; stray or unreadable folders do not crash it."""
+    """Part-way runs (checkpoint + curve.csv, no result.json) get a section; stray or unreadable folders do not crash it;
+    the part-way figure of a run no longer in progress is removed."""
     from pearl_paper.reproduce.cells import load_partway_curves
     from pearl_paper.reproduce.checkpoint import RunCheckpoint
     from pearl_paper.reproduce.curve import write_curve
@@ -685,7 +686,10 @@ def test_the_report_draws_runs_in_progress_and_leaves_out_folders_that_are_not(t
     }
     assert groups[("pearl-reference", "cpu", "cheetah-vel")]["pearl"][1]["num_timesteps"] == 300_000
     (tmp_path / "figures").mkdir()
+    stale = tmp_path / "figures" / "reproduce_oracle_walker2d-vel-long_cpu_curves_partway.png"  # a run since finished
+    stale.write_bytes(b"")
     report = str(build_report(tmp_path, tmp_path / "figures", "figures"))
+    assert not stale.exists()  # no page links it any more
     assert "No complete run found." in report and "cheetah-vel, runs in progress (budget `cpu`)" in report
     assert "| PEARL | 0 | 260000 | -260.0 |" in report and "| PEARL | 1 | 300000 | -300.0 |" in report
     assert "Published: -44 at 780,000 env steps" in report

@@ -453,11 +453,13 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
         seeds_name = f"reproduce_{experiment_name}_{family}_{budget}_seeds.png"
         if plot_seeds(experiment, group, Path(figures_dir) / seeds_name, title=title):
             page += [f"![per-seed rates, {experiment_name} / {family}]({page_figures}/{seeds_name})", ""]
+    drawn_partway: set[str] = set()
     for (experiment_name, budget, family), group in load_partway_curves(results_dir).items():
         experiment = EXPERIMENTS[experiment_name]  # the loader keeps declared experiments, families and variants only
         curves_name = f"reproduce_{experiment_name}_{family}_{budget}_curves_partway.png"
         title = f"{experiment.name} / {family} (budget {budget}): runs in progress"
         if plot_curves(experiment, group, Path(figures_dir) / curves_name, title=title, per_seed=True):
+            drawn_partway.add(curves_name)
             pages[experiment_name] += [
                 f"## {family}, runs in progress (budget `{budget}`)",
                 "",
@@ -469,6 +471,9 @@ def build_report(results_dir: str | os.PathLike[str], figures_dir: str | os.Path
                 f"![learning curves so far, {experiment_name} / {family}]({page_figures}/{curves_name})",
                 "",
             ]
+    for stale in Path(figures_dir).glob("reproduce_*_curves_partway.png"):  # runs since finished: no page shows them
+        if stale.name not in drawn_partway:
+            stale.unlink()
     for experiment in EXPERIMENTS.values():
         by_family = {  # the rule is written for the experiment's own budget: other presets' runs are not pooled in
             family: group
