@@ -30,6 +30,7 @@ from matplotlib.ticker import FuncFormatter, MaxNLocator  # noqa: E402
 from pearl_paper.experiments.spec import Criterion, Experiment, Family  # noqa: E402
 from pearl_paper.reproduce.cells import cell_stats, last_k, seed_values  # noqa: E402
 from pearl_paper.reproduce.curve import curve_value  # noqa: E402
+from pearl_paper.reproduce.formatting import seed_count  # noqa: E402
 
 
 def save_figure(fig: Any, path: str | os.PathLike[str], rect: tuple[float, float, float, float] | None = None) -> None:
@@ -85,7 +86,7 @@ def plot_group(
             )
             seeds = max(s.n_seeds for _, s in points)
             where = "" if section == "meta_test" else ", shifted tasks"
-            label = f"{variant.label} ({seeds} seed{'s' if seeds > 1 else ''}{where})"
+            label = f"{variant.label} ({seed_count(seeds)}{where})"
             bars = dict(marker="o", capsize=3, color=colour, linestyle=style, label=label)
             ax_return.errorbar(x, ret, yerr=ret_bars, **bars)  # type: ignore[arg-type]
             ax_violation.errorbar(x, rate, yerr=rate_bars, **bars)  # type: ignore[arg-type]
@@ -233,7 +234,7 @@ def plot_curves(
     for ax in axes.flat[len(panels) :]:
         ax.set_visible(False)
     for color, (name, runs) in enumerate(curves.items()):
-        label = f"{experiment.variant(name).label} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
+        label = f"{experiment.variant(name).label} ({seed_count(len(runs))})"
         if per_seed:
             seeded = [(seed, r["curve"]) for seed, r in sorted(group[name].items()) if r.get("curve")]
             variant_label = experiment.variant(name).label

@@ -22,3 +22,8 @@ def format_interval(interval: Interval, digits: int = 1, scale: float = 1.0) -> 
     if not (math.isfinite(interval.low) and math.isfinite(interval.high)):
         return mean
     return f"{mean} [{format_number(interval.low, digits, scale)}, {format_number(interval.high, digits, scale)}]"
+
+
+def seed_count(n: int) -> str:
+    """``1 seed``, ``4 seeds``: a count of seeds as the report's tables and figure legends print it."""
+    return f"{n} seed{'' if n == 1 else 's'}"

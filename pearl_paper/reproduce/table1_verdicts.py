@@ -19,6 +19,7 @@ from typing import Any
 
 from pearl_paper.experiments import get_experiment
 from pearl_paper.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
+from pearl_paper.reproduce.formatting import seed_count
 from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
 from pearl_paper.reproduce.remeasure import read_remeasured as read_remeasured_record
 from pearl_paper.reproduce.stats import Interval, paired_differences, sign_flip_can_reject, sign_flip_interval, t_interval
@@ -335,10 +336,6 @@ def _pct(value: float) -> str:
     return "-" if not math.isfinite(value) else f"{100 * value:.1f}"
 
 
-def _seeds(n: int) -> str:
-    return f"{n} seed{'' if n == 1 else 's'}"
-
-
 def _num(value: float) -> str:
     return "-" if not math.isfinite(value) else f"{value:.2f}"
 
@@ -433,7 +430,7 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             runs = decision.runs[name]
             out.append(f"| paper: {label} | " + " | ".join(_pct(paper.get(k, math.nan)) for k in PAPER_KS) + " | - |")
             ours = " | ".join(_pct(_mean(runs, k, "violation_rate")) for k in PAPER_KS)
-            out.append(f"| ours: {label} ({_seeds(len(runs))}) | {ours} | {_num(_mean(runs, 5, 'return_mean'))} |")
+            out.append(f"| ours: {label} ({seed_count(len(runs))}) | {ours} | {_num(_mean(runs, 5, 'return_mean'))} |")
             if decision.family == "highway-merge":
                 old = " | ".join(_pct(_mean(runs, k, "violation_rate", own=True)) for k in PAPER_KS)
                 out.append(f"| ours, old meta-test (200 a k): {label} | {old} | {_num(_mean(runs, 5, 'return_mean', True))} |")
@@ -455,7 +452,7 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
                 else:
                     flips.append("-")
             returns = _num(_mean(runs, 5, "return_mean"))
-            out.append(f"| ours: {label} ({_seeds(len(runs))}) | {' | '.join(cells)} | {returns} |")
+            out.append(f"| ours: {label} ({seed_count(len(runs))}) | {' | '.join(cells)} | {returns} |")
             if any(flip != "-" for flip in flips):
                 out.append(f"| ours: {label}, sign-flip interval | {' | '.join(flips)} | - |")
         out += ["", "Per seed, k = 0 violation rate % [Wilson 95%] (old 200-trajectory meta-test where re-measured):", ""]
