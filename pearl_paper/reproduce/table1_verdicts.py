@@ -19,7 +19,7 @@ from typing import Any
 
 from pearl_paper.experiments import get_experiment
 from pearl_paper.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
-from pearl_paper.reproduce.formatting import seed_count
+from pearl_paper.reproduce.formatting import format_number, seed_count
 from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
 from pearl_paper.reproduce.remeasure import read_remeasured as read_remeasured_record
 from pearl_paper.reproduce.stats import Interval, paired_differences, sign_flip_can_reject, sign_flip_interval, t_interval
@@ -333,11 +333,11 @@ def reductions(family: str, preset: str = "cpu", algo: str = "pearlplus") -> str
 
 
 def _pct(value: float) -> str:
-    return "-" if not math.isfinite(value) else f"{100 * value:.1f}"
+    return format_number(value, 1, scale=100.0)
 
 
 def _num(value: float) -> str:
-    return "-" if not math.isfinite(value) else f"{value:.2f}"
+    return format_number(value, 2)
 
 
 def _interval(interval: Interval | None, scale: float = 1.0, digits: int = 1) -> str:
