@@ -11,9 +11,9 @@ import math
 from pearl_paper.reproduce.stats import Interval
 
 
-def format_number(value: float, digits: int = 1, scale: float = 1.0) -> str:
-    """``scale * value`` to ``digits`` decimals, or ``-`` when it is missing or not finite."""
-    return "-" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
+def format_number(value: float, digits: int = 1, scale: float = 1.0, missing: str = "-") -> str:
+    """``scale * value`` to ``digits`` decimals, or ``missing`` when it is missing or not finite."""
+    return missing if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
 
 
 def format_interval(interval: Interval, digits: int = 1, scale: float = 1.0) -> str:

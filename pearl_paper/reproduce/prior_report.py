@@ -17,6 +17,7 @@ from typing import Any, NamedTuple
 from pearl_paper.experiments.prior_critic import DESIGNS, design_variant
 from pearl_paper.experiments.spec import VIOLATION_MARGIN, Experiment
 from pearl_paper.reproduce.cells import last_k, seed_values
+from pearl_paper.reproduce.formatting import format_number
 from pearl_paper.reproduce.stats import (
     REPRODUCED,
     Interval,
@@ -41,7 +42,7 @@ def _number(value: Any) -> float:
 
 
 def _fmt(value: float, digits: int = 2, scale: float = 1.0) -> str:
-    return "n/a" if not math.isfinite(value) else f"{value * scale:.{digits}f}"
+    return format_number(value, digits, scale, missing="n/a")
 
 
 def run_gaps(result: dict[str, Any], bar_run: dict[str, Any] | None, part: str) -> tuple[float, float]:
