@@ -447,8 +447,7 @@ def test_the_headline_holds_table_1s_four_columns(family: str, table: str) -> No
     with its t interval over seeds (the value alone at one seed), and the paper's cells; a column without runs says
     that it is pending."""
     from pearl_paper.experiments.table1 import TABLE1
-    from pearl_paper.reproduce.stats import t_interval
-    from pearl_paper.reproduce.table1_verdicts import decide, rate_cell
+    from pearl_paper.reproduce.table1_verdicts import decide, rate_cell, return_cell
 
     decision = next(d for d in decide(demo.default_results_dir()) if d.family == family)
     columns = {"Fine-Tune": decision.columns["finetune"], "MAML": decision.columns["maml"]}
@@ -470,15 +469,9 @@ def test_the_headline_holds_table_1s_four_columns(family: str, table: str) -> No
             continue
         row = next(line for line in rows if line.startswith(f"| {label} ({len(runs)}) |"))
         cells = [cell.strip() for cell in row.strip("|").split("|")][1:]
-        returns = [run.own_summary[5]["return_mean"] for run in runs.values()]
-        if len(returns) > 1:
-            interval = t_interval(returns)
-            return_cell = f"{interval.mean:.2f} [{interval.low:.2f}, {interval.high:.2f}]"
-        else:
-            return_cell = f"{returns[0]:.2f}"
         assert cells == [
             rate_cell([run.own_summary[0] for run in runs.values()]),
             rate_cell([run.own_summary[5] for run in runs.values()]),
-            return_cell,
+            return_cell([run.own_summary[5] for run in runs.values()]),
             paper_cell,
         ], label

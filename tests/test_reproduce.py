@@ -14,7 +14,7 @@ import pytest
 from pearl_paper.experiments import EXPERIMENTS, get_experiment
 from pearl_paper.experiments.families import get_family
 from pearl_paper.experiments.spec import Claim, Criterion, Experiment, PaperCell, Variant, claims_from_paper, resolve_k
-from pearl_paper.reproduce.cells import load_groups
+from pearl_paper.reproduce.cells import cell_stats, load_groups
 from pearl_paper.reproduce.cli import main
 from pearl_paper.reproduce.competence import criterion_value, evaluate_competence
 from pearl_paper.reproduce.layout import RESULT_KEYS, parse_seeds, write_json_atomic
@@ -25,6 +25,7 @@ from pearl_paper.reproduce.stats import (
     NOT_REPRODUCED,
     REPRODUCED,
     Interval,
+    clip_interval,
     paired_differences,
     t_interval,
     t_quantile,
@@ -361,6 +362,25 @@ def test_t_quantile_and_interval_by_hand() -> None:
     single = t_interval([0.3])
     assert single.mean == 0.3 and math.isnan(single.low) and math.isnan(single.high)
     assert tuple(t_interval([0.2, 0.2, 0.2])) == pytest.approx((0.2, 0.2, 0.2, 3))
+
+
+def test_a_rates_interval_is_clipped_to_0_1_and_a_missing_bound_stays_missing() -> None:
+    # rates 0.0 and 0.4 over 2 seeds: mean 0.2, sd 0.283, half-width 12.706 * 0.283 / sqrt(2) = 2.54 -> [-2.34, 2.74]
+    interval = t_interval([0.0, 0.4])
+    assert interval.low < -2.0 and interval.high > 2.0
+    assert tuple(clip_interval(interval)) == pytest.approx((0.2, 0.0, 1.0, 2))
+    single = clip_interval(t_interval([0.3]))
+    assert single.mean == 0.3 and math.isnan(single.low) and math.isnan(single.high)
+    assert tuple(clip_interval(t_interval([0.3, 0.4, 0.5]))) == tuple(t_interval([0.3, 0.4, 0.5]))  # inside: unchanged
+    # the experiment pages' cells use it: a rate's t interval over seeds never leaves 0-100%
+    stats = cell_stats(
+        {
+            0: {"meta_test": {"summary": [{"k": 0, "n": 10, "violation_rate": 0.0, "return_mean": 1.0}]}},
+            1: {"meta_test": {"summary": [{"k": 0, "n": 10, "violation_rate": 0.4, "return_mean": 2.0}]}},
+        },
+        0,
+    )
+    assert stats is not None and (stats.violation.low, stats.violation.high) == (0.0, 1.0)
 
 
 def test_paired_differences_use_common_seeds() -> None:

@@ -261,6 +261,27 @@ def test_table1_shows_the_fine_tune_and_maml_columns_beside_the_paper(tmp_path: 
     )
 
 
+def test_table1s_pearl_rows_carry_their_intervals_over_seeds(tmp_path: Path) -> None:
+    """PEARL's and PEARL+'s rows carry the same cells as the other columns: each rate with its t interval over seeds
+    (clipped to 0-100), the k = 5 return with its t interval; on Highway-Merge from the re-measured record."""
+    (owner, name), (plus_owner, plus) = MERGE
+    for seed, rate in ((0, 0.10), (1, 0.20)):
+        own = summary(0.5, 0.5, -9.0)
+        write_run(tmp_path, owner, "highway-merge", name, seed, own, summary(rate, 0.0, -7.0 - seed))
+        write_run(tmp_path, plus_owner, "highway-merge", plus, seed, own, summary(0.02, 0.0, -7.6))
+    lines = decision_section([decide_family("highway-merge", tmp_path)])
+    row = next(line for line in lines if line.startswith("| ours: PEARL, fixed entropy 1, reward scale 5 (2 seeds) |"))
+    cells = [cell.strip() for cell in row.strip("|").split("|")][1:]
+    # k = 0 as in the Fine-Tune case above: 15.0 [-48.5, 78.5] clipped; k >= 1: 0 of 2 x 200 -> Wilson [0, 0.95%]
+    assert cells[0] == "15.0 [0.0, 78.5]" and cells[1] == "0.0 [0.0, 1.0] (Wilson, 400 pooled)"
+    # k = 5 returns -7 and -8: mean -7.5, half-width 12.706 x 0.7071 / sqrt(2) = 6.35
+    assert cells[4] == "-7.50 [-13.85, -1.15]"
+    plus_row = next(line for line in lines if line.startswith("| ours: PEARL+ (alpha 0.1), fixed entropy 1, reward scale 5"))
+    assert (
+        "| 2.0 [2.0, 2.0] (Wilson, 400 pooled) | " not in plus_row and "| 2.0 [1.0, 3.9] (Wilson, 400 pooled) | " in plus_row
+    )
+
+
 def test_the_columns_sign_flip_intervals_appear_where_the_seeds_can_reject(tmp_path: Path) -> None:
     """At 6 seeds a sign-flip test can reject (2 / 64 < 0.05), at 5 it cannot (2 / 32 > 0.05): a column of 6 seeds gets
     its sign-flip row and its differences their sign-flip intervals; equal rates on every seed get the pooled Wilson

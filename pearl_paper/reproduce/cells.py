@@ -14,7 +14,7 @@ from typing import Any
 
 from pearl_paper.experiments import EXPERIMENTS
 from pearl_paper.reproduce.layout import RESULT_FILE, check_result_path, find_results, read_result
-from pearl_paper.reproduce.stats import Interval, t_interval
+from pearl_paper.reproduce.stats import Interval, clip_interval, t_interval
 from sb3_pearl.evaluation.statistics import wilson_interval
 
 METRIC_KEYS = {"violation": "violation_rate", "return": "return_mean"}
@@ -27,7 +27,7 @@ Group = dict[str, dict[int, dict[str, Any]]]
 class CellStats:
     """Statistics of one (variant, k) cell over seeds."""
 
-    violation: Interval
+    violation: Interval  # of the rate (0-1) over seeds, clipped to 0-1
     pooled_rate: float
     pooled_low: float
     pooled_high: float
@@ -169,7 +169,7 @@ def cell_stats(results: Mapping[int, dict[str, Any]], k: int, section: str = "me
     violated = sum(round(rate * count) for rate, count in zip(rates, n))
     low, high = wilson_interval(violated, sum(n))
     return CellStats(
-        violation=t_interval(rates),
+        violation=clip_interval(t_interval(rates)),  # a rate's interval stays within 0-1
         pooled_rate=violated / sum(n),
         pooled_low=low,
         pooled_high=high,

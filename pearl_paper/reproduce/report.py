@@ -132,7 +132,7 @@ def shown_ks(group: Group, section: str = "meta_test") -> list[int]:
 def results_table(experiment: Experiment, family: str, group: Group, claims: Sequence[ClaimResult]) -> list[str]:
     """The main table of a group: one row per (variant, k)."""
     lines = [
-        "| variant | k | violation rate, % (95% t over seeds) | pooled, % (95% Wilson) | paper | "
+        "| variant | k | violation rate, % (95% t over seeds, clipped to 0-100) | pooled, % (95% Wilson) | paper | "
         "return (95% t over seeds) | paper | n traj. | seeds | verdicts |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -237,7 +237,8 @@ def shift_table(experiment: Experiment, group: Group) -> list[str]:
     if not shifted:
         return []
     lines = [
-        "| variant | k | violation rate, % (95% t) | pooled, % (95% Wilson) | return (95% t) | n traj. | seeds |",
+        "| variant | k | violation rate, % (95% t, clipped to 0-100) | pooled, % (95% Wilson) | return (95% t) | n traj. | "
+        "seeds |",
         "|---|---|---|---|---|---|---|",
     ]
     for variant in [v.name for v in experiment.variants if v.name in shifted]:

@@ -44,6 +44,15 @@ class Interval(NamedTuple):
     n: int
 
 
+def clip_interval(interval: Interval, low: float = 0.0, high: float = 1.0) -> Interval:
+    """``interval`` with its bounds clipped to ``[low, high]``: a rate's t interval can reach below 0 or above 1 at few
+    seeds, which no rate can; missing (nan) bounds stay missing."""
+    return interval._replace(
+        low=min(max(interval.low, low), high) if math.isfinite(interval.low) else interval.low,
+        high=max(min(interval.high, high), low) if math.isfinite(interval.high) else interval.high,
+    )
+
+
 def _betacf(a: float, b: float, x: float) -> float:
     """Continued fraction of the regularised incomplete beta function (modified Lentz)."""
     tiny = 1e-300

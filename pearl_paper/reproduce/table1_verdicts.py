@@ -19,10 +19,17 @@ from typing import Any
 
 from pearl_paper.experiments import get_experiment
 from pearl_paper.experiments.table1_rules import DECIDED, MERGE_REMEASURE, RULES, DecisionRules
-from pearl_paper.reproduce.formatting import format_number, seed_count
+from pearl_paper.reproduce.formatting import format_interval, format_number, seed_count
 from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, read_run_result, run_dir
 from pearl_paper.reproduce.remeasure import read_remeasured as read_remeasured_record
-from pearl_paper.reproduce.stats import Interval, paired_differences, sign_flip_can_reject, sign_flip_interval, t_interval
+from pearl_paper.reproduce.stats import (
+    Interval,
+    clip_interval,
+    paired_differences,
+    sign_flip_can_reject,
+    sign_flip_interval,
+    t_interval,
+)
 from sb3_pearl.budgets import load_budget
 from sb3_pearl.evaluation.statistics import wilson_interval
 
@@ -386,8 +393,22 @@ def rate_cell(entries: list[dict[str, Any]], rules: DecisionRules = RULES) -> st
         n = sum(int(entry["n"]) for entry in entries)
         low, high = wilson_interval(round(sum(rate * int(entry["n"]) for rate, entry in zip(rates, entries))), n)
         return f"{_pct(rates[0])} [{_pct(low)}, {_pct(high)}] (Wilson, {n} pooled)"
-    rate = t_interval(rates, rules.confidence)
-    return f"{_pct(rate.mean)} [{_pct(max(rate.low, 0.0))}, {_pct(min(rate.high, 1.0))}]"
+    rate = clip_interval(t_interval(rates, rules.confidence))
+    return f"{_pct(rate.mean)} [{_pct(rate.low)}, {_pct(rate.high)}]"
+
+
+def return_cell(entries: list[dict[str, Any]], rules: DecisionRules = RULES) -> str:
+    """
+    One Table I return cell of a column over seeds: the mean return and its t interval over the seeds (the value alone
+    at one seed).
+
+    :param entries: one meta-test summary entry per seed at this k (``return_mean``)
+    :param rules: the confidence of the interval
+    """
+    returns = [float(entry["return_mean"]) for entry in entries]
+    if len(returns) < 2:
+        return _num(returns[0]) if returns else "-"
+    return format_interval(t_interval(returns, rules.confidence), digits=2)
 
 
 def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RULES) -> list[str]:
@@ -429,8 +450,11 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             label = experiment.variant(name).label
             runs = decision.runs[name]
             out.append(f"| paper: {label} | " + " | ".join(_pct(paper.get(k, math.nan)) for k in PAPER_KS) + " | - |")
-            ours = " | ".join(_pct(_mean(runs, k, "violation_rate")) for k in PAPER_KS)
-            out.append(f"| ours: {label} ({seed_count(len(runs))}) | {ours} | {_num(_mean(runs, 5, 'return_mean'))} |")
+            ours = " | ".join(
+                rate_cell([run.summary[k] for run in runs.values() if k in run.summary], rules) for k in PAPER_KS
+            )
+            returns = return_cell([run.summary[5] for run in runs.values() if 5 in run.summary], rules)
+            out.append(f"| ours: {label} ({seed_count(len(runs))}) | {ours} | {returns} |")
             if decision.family == "highway-merge":
                 old = " | ".join(_pct(_mean(runs, k, "violation_rate", own=True)) for k in PAPER_KS)
                 out.append(f"| ours, old meta-test (200 a k): {label} | {old} | {_num(_mean(runs, 5, 'return_mean', True))} |")
@@ -451,7 +475,7 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
                     flips.append(f"[{_pct(flip.low)}, {_pct(flip.high)}]")
                 else:
                     flips.append("-")
-            returns = _num(_mean(runs, 5, "return_mean"))
+            returns = return_cell([run.own_summary[5] for run in runs.values() if 5 in run.own_summary], rules)
             out.append(f"| ours: {label} ({seed_count(len(runs))}) | {' | '.join(cells)} | {returns} |")
             if any(flip != "-" for flip in flips):
                 out.append(f"| ours: {label}, sign-flip interval | {' | '.join(flips)} | - |")
