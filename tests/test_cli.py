@@ -330,12 +330,13 @@ def test_enjoy_refuses_a_model_of_another_family_without_args_yml(tmp_path: Path
 
 def test_every_yaml_entry_is_valid() -> None:
     """Every key of zoo_hyperparams/<algo>.yml is a constructor kwarg or a zoo key, for every registered family."""
-    from sb3_pearl import MAML, FineTune
+    from sb3_pearl import MAML, FineTune, Oracle
     from sb3_pearl.envs import FAMILIES
     from sb3_pearl.zoo import ZOO_SPECIAL_KEYS
 
     register_algos()
-    for algo, cls in (("pearl", PEARL), ("pearlplus", PEARLPlus), ("finetune", FineTune), ("maml", MAML)):
+    algos = (("pearl", PEARL), ("pearlplus", PEARLPlus), ("finetune", FineTune), ("maml", MAML), ("oracle", Oracle))
+    for algo, cls in algos:
         with open(ROOT / "zoo_hyperparams" / f"{algo}.yml") as file:
             entries = yaml.safe_load(file)
         assert set(FAMILIES) <= set(entries), f"{algo}.yml misses {sorted(set(FAMILIES) - set(entries))}"
@@ -345,6 +346,26 @@ def test_every_yaml_entry_is_valid() -> None:
             assert entry["n_timesteps"] > 0
             if "learning_rate" in entry:
                 assert isinstance(entry["learning_rate"], float)
+
+
+def test_train_and_enjoy_the_oracle(tmp_path: Path) -> None:
+    """``train.py --algo oracle`` trains the task-aware SAC (its observation is the family's plus the task vector) and
+    meta-tests it like the meta-learners, with the family's measure beside return and violations; ``enjoy.py`` replays
+    it on held-out tasks."""
+    from sb3_pearl import Oracle
+
+    params = ["learning_starts:50", "batch_size:16", "policy_kwargs:dict(net_arch=[16])", "n_train_tasks:4"]
+    params += ["n_test_tasks:2", "meta_test:dict(n_adapt=1)"]
+    args = ("--algo", "oracle", "--env", ENV_ID, "-f", str(tmp_path), "--seed", "1", "--num-threads", "1", "-n", "200")
+    run_in_process(train_main, *args, "-params", *params)
+    run_dir = tmp_path / "oracle" / f"{ENV_ID}_1"
+    model = Oracle.load(run_dir / f"{ENV_ID}.zip")
+    raw_dim = gym.make(ENV_ID).observation_space.shape[0]
+    assert model.observation_space.shape[0] > raw_dim  # the task vector appended
+    lines = (run_dir / "meta_test.csv").read_text().splitlines()
+    assert lines[0] == "task,repeat,k,return,cost,length,violated,distance" and len(lines) == 1 + 2 * 2
+    out = enjoy("--algo", "oracle", "--env", ENV_ID, "-f", str(tmp_path), "--no-render", "--n-tasks", "1", "--n-adapt", "1")
+    assert out.stdout.count("Task ") == 1 and "violations, % [95%]" in out.stdout and "distance" in out.stdout
 
 
 def test_a_short_run_meta_tests_on_a_few_tasks(tmp_path: Path) -> None:

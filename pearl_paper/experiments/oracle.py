@@ -166,7 +166,7 @@ HIGHWAY_MERGE_ORACLE = dataclasses.replace(HIGHWAY_MERGE, budget_family="highway
 
 ORACLE = Experiment(
     name="oracle",
-    title="The oracle (task-aware SAC) on the MuJoCo families at 500k env steps",
+    title="The oracle (task-aware SAC) on the MuJoCo families at 500k env steps (one Ant3D-vel candidate at 2M)",
     description=(
         "SAC told the task (its observation carries the standardised task vector) on Walker2D-vel, Ant3D-vel and "
         "HalfCheetah-Vel at PEARL's networks, tasks and 500k env steps; pearl-reference's eval seed (10005); "
