@@ -24,9 +24,12 @@ from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, read_run_result, r
 MERGE_JUDGED_RUNS: tuple[tuple[str, str, str], ...] = (
     ("PEARL", "merge-table1", "pearl-fixed-entropy"),
     ("PEARL+", "merge-table1", "pearlplus-fixed-entropy"),
+    ("Fine-Tune", "merge-columns", "finetune"),
+    ("MAML", "merge-columns", "maml"),
 )
 """The meta-learners judged against the Merge oracle: (label, experiment, variant), Table I's Merge runs, whose eval seed
-(and so held-out tasks) the oracle's experiment shares."""
+(and so held-out tasks) the oracle's experiment shares; Table I's other columns (``merge-columns``, the same eval seed)
+by the same rule beside them."""
 
 
 @dataclass(frozen=True)
@@ -141,7 +144,7 @@ def merge_competence_section(results_dir: str | os.PathLike[str], rules: Compete
         "#### Highway-Merge",
         "",
         f"From each run's own meta-test (the same 20 held-out tasks x 10 repeats). The oracle is competent if its k >= 1 "
-        f"failure rate (crash or no merge) is at most {100 * rules.merge_max_failure:.0f}%; a meta-learner if its k >= 1 "
+        f"failure rate (crash or no merge) is at most {100 * rules.merge_max_failure:.0f}%; any other agent if its k >= 1 "
         f"failure rate is at most the oracle's + {100 * rules.merge_failure_margin:.0f} points "
         f"({100 * (oracle_failure + rules.merge_failure_margin):.1f}%) and its k >= 1 return at least the oracle's "
         f"- {100 * rules.merge_return_fraction:.0f}% of |the oracle's| "
