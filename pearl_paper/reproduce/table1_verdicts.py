@@ -365,6 +365,13 @@ def _bounds(interval: Interval | None, scale: float = 1.0, digits: int = 1) -> s
     return f"[{interval.low * scale:+.{digits}f}, {interval.high * scale:+.{digits}f}]"
 
 
+def _entries(runs: dict[int, RunNumbers], k: int, own: bool = False) -> list[dict[str, Any]]:
+    """Each run's summary entry at trajectory ``k`` (its own meta-test's with ``own``), the runs that have one."""
+    return [
+        (run.own_summary if own else run.summary)[k] for run in runs.values() if k in (run.own_summary if own else run.summary)
+    ]
+
+
 def _mean(runs: dict[int, RunNumbers], k: int, key: str, own: bool = False) -> float:
     values = [(run.own_summary if own else run.summary)[k][key] for run in runs.values() if k in run.summary]
     return sum(values) / len(values) if values else math.nan
@@ -406,9 +413,7 @@ def return_cell(entries: list[dict[str, Any]], rules: DecisionRules = RULES) -> 
     :param rules: the confidence of the interval
     """
     returns = [float(entry["return_mean"]) for entry in entries]
-    if len(returns) < 2:
-        return _num(returns[0]) if returns else "-"
-    return format_interval(t_interval(returns, rules.confidence), digits=2)
+    return format_interval(t_interval(returns, rules.confidence), digits=2) if returns else "-"  # one seed: the mean
 
 
 def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RULES) -> list[str]:
@@ -450,10 +455,8 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
             label = experiment.variant(name).label
             runs = decision.runs[name]
             out.append(f"| paper: {label} | " + " | ".join(_pct(paper.get(k, math.nan)) for k in PAPER_KS) + " | - |")
-            ours = " | ".join(
-                rate_cell([run.summary[k] for run in runs.values() if k in run.summary], rules) for k in PAPER_KS
-            )
-            returns = return_cell([run.summary[5] for run in runs.values() if 5 in run.summary], rules)
+            ours = " | ".join(rate_cell(_entries(runs, k), rules) for k in PAPER_KS)
+            returns = return_cell(_entries(runs, 5), rules)
             out.append(f"| ours: {label} ({seed_count(len(runs))}) | {ours} | {returns} |")
             if decision.family == "highway-merge":
                 old = " | ".join(_pct(_mean(runs, k, "violation_rate", own=True)) for k in PAPER_KS)
@@ -467,7 +470,7 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
                 continue
             cells, flips = [], []
             for k in PAPER_KS:
-                entries = [run.own_summary[k] for run in runs.values() if k in run.own_summary]
+                entries = _entries(runs, k, own=True)
                 cells.append(rate_cell(entries, rules))
                 if len(entries) >= 2 and sign_flip_can_reject(len(entries), rules.confidence):
                     rates = [entry["violation_rate"] for entry in entries]
@@ -475,7 +478,7 @@ def decision_section(decisions: list[FamilyDecision], rules: DecisionRules = RUL
                     flips.append(f"[{_pct(flip.low)}, {_pct(flip.high)}]")
                 else:
                     flips.append("-")
-            returns = return_cell([run.own_summary[5] for run in runs.values() if 5 in run.own_summary], rules)
+            returns = return_cell(_entries(runs, 5, own=True), rules)
             out.append(f"| ours: {label} ({seed_count(len(runs))}) | {' | '.join(cells)} | {returns} |")
             if any(flip != "-" for flip in flips):
                 out.append(f"| ours: {label}, sign-flip interval | {' | '.join(flips)} | - |")
