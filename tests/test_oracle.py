@@ -109,6 +109,54 @@ def test_oracle_discrete_actions_on_highway_merge() -> None:
     assert model.action_space.contains(int(action))
 
 
+def test_shifted_env_is_standardised_as_in_training(tmp_path) -> None:
+    """A target beyond the training range reads as one: the shifted env takes the training env's standardisation."""
+    model = Oracle("MlpPolicy", "Walker2dVelMeta-v0", seed=0, **TINY)
+    training = TaskObservation(gym.make("Walker2dVelMeta-v0"))
+    assert model.task_standardisation == training.standardisation
+    shifted_env = gym.make("Walker2dVelMeta-v0", velocity_low=2.0, velocity_high=3.0)
+    by_itself = TaskObservation(gym.make("Walker2dVelMeta-v0", velocity_low=2.0, velocity_high=3.0))
+    wrapped = model.prepare_env(shifted_env)
+    fast = {"velocity": 2.5}
+    # by hand: (2.5 - mean) / std over the training tasks, U[0, 2]: mean ~1, std ~2 / sqrt(12)
+    expected = (2.5 - training.task_mean[0]) / training.task_std[0]
+    assert 2.4 < expected < 2.8
+    np.testing.assert_allclose(wrapped.task_vector(fast), [expected], rtol=1e-6)
+    assert abs(by_itself.task_vector(fast)[0]) < 0.2  # what the shifted env's own statistics would have told it
+    wrapped.unwrapped.set_task(fast)
+    obs, _ = wrapped.reset(seed=0)
+    assert obs[-1] == pytest.approx(expected, rel=1e-5)
+    # an env already wrapped (with its own statistics) is re-standardised, not wrapped twice
+    assert model.prepare_env(by_itself) is by_itself
+    np.testing.assert_allclose(by_itself.task_vector(fast), [expected], rtol=1e-6)
+
+    # saved with the model, and given to the env load() and set_env() receive
+    model.save(tmp_path / "oracle.zip")
+    loaded = Oracle.load(tmp_path / "oracle.zip", env=gym.make("Walker2dVelMeta-v0", velocity_low=2.0, velocity_high=3.0))
+    assert loaded.task_standardisation == model.task_standardisation
+    assert loaded.env.env_method("task_vector", fast)[0][0] == pytest.approx(expected, rel=1e-6)
+    loaded.set_env(gym.make("Walker2dVelMeta-v0", velocity_low=2.0, velocity_high=3.0))
+    assert loaded.env.env_method("task_vector", fast)[0][0] == pytest.approx(expected, rel=1e-6)
+    plain = Oracle.load(tmp_path / "oracle.zip")
+    np.testing.assert_allclose(plain.prepare_env(shifted_env).task_vector(fast), [expected], rtol=1e-6)
+    with pytest.raises(ValueError, match="1 means and 1 positive stds"):
+        by_itself.standardise_with({"mean": [0.0, 1.0], "std": [1.0, 1.0]})
+
+
+def test_an_oracle_saved_without_its_standardisation_takes_it_from_the_env_it_is_loaded_with(tmp_path) -> None:
+    """A zip from before the standardisation was saved: load(env=training env) recovers it; without an env, a warning."""
+    model = Oracle("MlpPolicy", "Walker2dVelMeta-v0", seed=0, **TINY)
+    expected = model.task_standardisation
+    model.task_standardisation = None  # what such a zip holds
+    model.save(tmp_path / "old.zip")
+    assert Oracle.load(tmp_path / "old.zip", env=gym.make("Walker2dVelMeta-v0")).task_standardisation == expected
+    plain = Oracle.load(tmp_path / "old.zip")
+    assert plain.task_standardisation is None
+    with pytest.warns(UserWarning, match="saved without its task standardisation"):
+        wrapped = plain.prepare_env(gym.make("Walker2dVelMeta-v0"))
+    assert wrapped.standardisation == expected  # on the training distribution, the env's own is the same
+
+
 def test_oracle_refuses_fine_tuning_settings_and_unwrappable_vec_envs() -> None:
     with pytest.raises(ValueError, match=r"does not fine-tune .*adapt_gradient_steps"):
         Oracle("MlpPolicy", "PointGoalMeta-v0", adapt_gradient_steps=10)
@@ -230,6 +278,38 @@ def test_reproduce_velocity_measures_finished_runs_on_their_own_held_out_tasks(t
     before = (folder / "velocity_held_out.json").stat().st_mtime_ns
     assert reproduce_main(["velocity", "oracle", *args]) == 0
     assert (folder / "velocity_held_out.json").stat().st_mtime_ns == before
+
+
+def test_reproduce_measure_redoes_an_oracle_shift_standardised_over_the_shifted_tasks(tmp_path) -> None:
+    """A run's shifted meta-test records the training standardisation it told the oracle; a record without it (made
+    before it was saved) is measured again by `reproduce measure` from model.zip, equal to the run's own measurement."""
+    import json
+
+    from pearl_paper.reproduce.cli import main as reproduce_main
+
+    args = ["--family", "walker2d-vel-long", "--seeds", "0", "--results-dir", str(tmp_path)]
+    assert reproduce_main(["run", "oracle", "--budget", "smoke", *args]) == 0
+    path = tmp_path / "oracle" / "walker2d-vel-long" / "oracle" / "seed0" / "result.json"
+    result = json.loads(path.read_text())
+    training = TaskObservation(gym.make("Walker2dVelMeta-v0")).standardisation
+    for section in ("meta_test", "shift"):  # told on the training scale, in- and out-of-distribution alike
+        assert result[section]["config"]["task_standardisation"] == training
+    stale = json.loads(path.read_text())
+    del stale["shift"]["config"]["task_standardisation"]
+    stale["shift"]["summary"] = []  # what the old measurement said is replaced
+    path.write_text(json.dumps(stale))
+    assert reproduce_main(["measure", "oracle", "--results-dir", str(tmp_path)]) == 0
+    measured = json.loads(path.read_text())
+    assert "shifted env's tasks" in measured["shift"].pop("remeasured")["reason"]
+    for record in (measured["shift"], result["shift"]):
+        record.pop("wall_time_s")
+    assert measured["shift"] == result["shift"]
+    assert {key: value for key, value in measured.items() if key != "shift"} == {
+        key: value for key, value in result.items() if key != "shift"
+    }
+    before = path.stat().st_mtime_ns
+    assert reproduce_main(["measure", "oracle", "--results-dir", str(tmp_path)]) == 0  # up to date: nothing to do
+    assert path.stat().st_mtime_ns == before
 
 
 def _merge_rows(failures_k0: int, failures_adapted: int, adapted_return: float) -> list[dict]:

@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.envs.point_goal import PointGoalMetaEnv
 from sb3_pearl.pearl.losses import LossSettings
-from tests.conftest import CountSteps, make_discrete_env, make_point_env
+from tests.conftest import CountSteps, make_discrete_env, make_point_env, tiny_pearl
 
 
 def _assert_rewards_match_tasks(model: PEARLPlus) -> None:
@@ -235,3 +236,34 @@ def test_train_honours_batch_size(tiny_kwargs: dict[str, Any]) -> None:
     assert replay.rewards.shape == (model.meta_batch, 3, 1)
     model.train(gradient_steps=2, batch_size=3)  # runs with 3 rows per task
     assert model._n_updates > 0
+
+
+class _RecordRates(BaseCallback):
+    """The env steps done and the optimizers' learning rates at each iteration's start (after the previous train())."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[tuple[int, set[float]]] = []
+
+    def _on_rollout_start(self) -> None:
+        rates = {group["lr"] for optimizer in self.model.policy.optimizers() for group in optimizer.param_groups}
+        self.seen.append((self.model.num_timesteps, rates))
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def test_learning_rate_schedule_follows_training_progress(tiny_kwargs: dict[str, Any]) -> None:
+    """A schedule (rl-zoo's ``lin_3e-4``) decays with the env steps done, as in SB3's SAC, in every optimizer."""
+    model = tiny_pearl(tiny_kwargs, seed=0, learning_rate=lambda progress_remaining: 1e-3 * progress_remaining)
+    record = _RecordRates()
+    total = 480
+    model.learn(total, callback=record)
+    # each train() sets every optimizer to lr_schedule(1 - env steps so far / total): by hand, at the env steps the
+    # next iteration starts from (the first iteration's start has trained on nothing yet)
+    trained = [(steps, rates) for steps, rates in record.seen if steps > 0]
+    assert len(trained) >= 2
+    for steps, rates in trained:
+        assert sorted(rates) == [pytest.approx(1e-3 * (1.0 - steps / total))]
+    final = {group["lr"] for optimizer in model.policy.optimizers() for group in optimizer.param_groups}
+    assert sorted(final) == [pytest.approx(0.0)]  # the last gradient steps ran at the end of training

@@ -117,7 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     status.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")
 
     measure = sub.add_parser(
-        "measure", help="fill in the prior-critic measures where missing or of an earlier version (from model.zip)"
+        "measure",
+        help="fill in the prior-critic measures where missing or of an earlier version, and the oracle's shifted "
+        "meta-test where its task vector was standardised over the shifted tasks (from model.zip)",
     )
     measure.add_argument("experiments", nargs="*", help="only these experiments (default: all)")
     measure.add_argument("--results-dir", default="results", help="root of the results layout (default: results)")

@@ -147,7 +147,8 @@ def measure_results(
 ) -> list[Path]:
     """
     Fill in the ``prior_critic`` section of complete runs written before it existed, or by an earlier
-    :data:`MEASURES_VERSION` (``reproduce measure``).
+    :data:`MEASURES_VERSION`, and measure the oracle's shifted meta-test again where it was standardised over the shifted
+    tasks (:mod:`~pearl_paper.reproduce.oracle_shift`) (``reproduce measure``).
 
     The model is loaded from the run's ``model.zip`` and measured exactly as :func:`run_one` measures it (the
     measures are seeded by the eval seed and the model seed only); result.json is rewritten atomically with the
@@ -182,19 +183,34 @@ def measure_results(
 def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> bool:
     """Measure one run, under its lock; its result.json is read here, so nothing written before is overwritten."""
     from pearl_paper.experiments import get_experiment
-    from pearl_paper.reproduce.layout import MODEL_FILE, cpu_info, read_run_result, write_json_atomic
+    from pearl_paper.reproduce.layout import read_run_result, write_json_atomic
+    from pearl_paper.reproduce.oracle_shift import remeasure_oracle_shift, stale_oracle_shift
     from sb3_pearl.registry import algorithm_class
 
     if experiments is not None and path.parent.parent.parent.parent.name not in experiments:
         return False  # <experiment>/<family>/<variant>/seed<N>/result.json: filtered before anything is read
     result = read_run_result(path)  # refused if it is not the result of its folder's run
+    algo = get_experiment(result["experiment"]).variant(result["variant"]).algo
+    measured = _measure_prior(path, result, algo, force)
+    if stale_oracle_shift(result, algorithm_class(algo)):
+        result["shift"] = remeasure_oracle_shift(path.parent, result)
+        measured = True
+    if measured:
+        write_json_atomic(path, result)
+    return measured
+
+
+def _measure_prior(path: Path, result: dict[str, Any], algo: str, force: bool) -> bool:
+    """Fill in (or update) ``result``'s prior-critic measures from the run's model; whether anything changed."""
+    from pearl_paper.experiments import get_experiment
+    from pearl_paper.reproduce.layout import MODEL_FILE, cpu_info
+    from sb3_pearl.registry import algorithm_class
+
     section = result.get("prior_critic")
     current = isinstance(section, dict) and "error" not in section and section.get("version", 0) >= MEASURES_VERSION
     if current and not force:
         return False
-    experiment = get_experiment(result["experiment"])
-    family = experiment.family(result["family"])
-    algo = experiment.variant(result["variant"]).algo
+    family = get_experiment(result["experiment"]).family(result["family"])
     if not force and isinstance(section, dict) and "error" not in section and section.get("version") == 1:
         # version 2 added the task-blind reference to the calibration only: the prior-optimality rollouts (the costly
         # part on MuJoCo and highway families) are kept, the calibration is redone (seeded as compute_prior_measures
@@ -210,7 +226,6 @@ def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> 
             # rollouts of chaotic dynamics (MuJoCo) diverge across CPUs: say where the calibration was redone
             section["calibration_remeasured"] = {"from_version": 1, "cpu": cpu_info()["model"]}
         section["version"] = MEASURES_VERSION
-        write_json_atomic(path, result)
         return True
     model = algorithm_class(algo).load(path.parent / MODEL_FILE, device=result.get("device", "cpu"))  # type: ignore[attr-defined]
     meta = result["meta_test"]
@@ -225,5 +240,4 @@ def _measure_one(path: Path, experiments: Sequence[str] | None, force: bool) -> 
         result["eval_seed"],
         result["seed"],
     )
-    write_json_atomic(path, result)
     return True

@@ -251,6 +251,22 @@ def shift_table(experiment: Experiment, group: Group) -> list[str]:
                 f"| {_label(experiment, variant)} | {k} | {format_interval(stats.violation, 1, 100)} | {pooled} | "
                 f"{format_interval(stats.ret)} | {stats.n_trajectories} | {stats.n_seeds} |"
             )
+    remeasured = sorted(
+        {
+            f"{_label(experiment, v)} seed {s}"
+            for v, seeds in shifted.items()
+            for s, r in seeds.items()
+            if "remeasured" in r["shift"]
+        }
+    )
+    if remeasured:
+        reasons = {
+            r["shift"]["remeasured"]["reason"]
+            for seeds in shifted.values()
+            for r in seeds.values()
+            if "remeasured" in r["shift"]
+        }
+        lines += ["", f"Re-measured after the run ({', '.join(remeasured)}): {'; '.join(sorted(reasons))}."]
     return lines
 
 

@@ -3,9 +3,13 @@
 :class:`TaskObservation` appends the task in force to every observation, as a fixed-length vector: the family's
 :meth:`~sb3_pearl.envs.task_protocol.MetaTaskEnv.task_features` (every number of the task dict in sorted-key order,
 an angle as its cosine and sine), standardised with the mean and standard deviation of those features over
-:data:`REFERENCE_TASKS` tasks of the family's own distribution (``sample_tasks(REFERENCE_TASKS, seed=0)``: fixed by the
-env's ranges, never by the held-out tasks), so that a density of 30-50 veh/km and a target speed of 0-3 m/s enter the
-networks at the same scale.
+:data:`REFERENCE_TASKS` tasks of the *training* distribution (``sample_tasks(REFERENCE_TASKS, seed=0)`` of the env the
+agent trains in: fixed by its ranges, never by the held-out tasks), so that a density of 30-50 veh/km and a target speed
+of 0-3 m/s enter the networks at the same scale.
+
+The standardisation is part of the agent, not of the env it acts in: an env of a shifted distribution (target speeds
+beyond the training range) must be wrapped with the training one (``standardisation=``; the oracle passes its own, which
+it saves), or a 2.5 m/s target would be standardised against the shifted range and read as an average training task.
 
 The task is read once per episode, right after the wrapped env's ``reset()`` applied it (``set_task`` takes effect at
 the next reset, so a task set during an episode, as Fine-Tune and the oracle do for the next one, never leaks into the
@@ -14,6 +18,7 @@ current episode's observations).
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -23,6 +28,9 @@ from gymnasium import spaces
 from sb3_pearl.envs.task_protocol import Task, _flat_numbers
 
 REFERENCE_TASKS = 1000
+
+Standardisation = Mapping[str, Sequence[float]]
+"""The task vector's standardisation: ``{"mean": [...], "std": [...]}``, one number per task feature."""
 
 
 def task_features(base: Any, task: Task) -> np.ndarray:
@@ -44,9 +52,12 @@ class TaskObservation(gym.ObservationWrapper):
 
     :param env: a task-family env (``env.unwrapped`` has ``sample_tasks`` and ``get_task``) with a 1-D ``Box``
         observation space
+    :param standardisation: the mean and standard deviation of the task features (``{"mean": [...], "std": [...]}``,
+        :attr:`standardisation` of the wrapper around the training env); ``None``: computed from ``env``'s own
+        distribution, which is right only when ``env`` is the training distribution
     """
 
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, standardisation: Standardisation | None = None) -> None:
         super().__init__(env)
         base: Any = env.unwrapped
         if not all(callable(getattr(base, name, None)) for name in ("sample_tasks", "get_task")):
@@ -63,10 +74,12 @@ class TaskObservation(gym.ObservationWrapper):
         reference = np.stack([task_features(base, task) for task in base.sample_tasks(REFERENCE_TASKS, seed=0)])
         if reference.ndim != 2 or reference.shape[1] == 0:
             raise ValueError(f"TaskObservation: {type(base).__name__}'s tasks hold no number to tell the agent")
-        self.task_mean = reference.mean(axis=0)
-        std = reference.std(axis=0)
-        self.task_std = np.where(std > 1e-8, std, 1.0)  # a constant feature is only centred
         self.task_dim = int(reference.shape[1])
+        std = reference.std(axis=0)
+        self.task_mean = reference.mean(axis=0)
+        self.task_std = np.where(std > 1e-8, std, 1.0)  # a constant feature is only centred
+        if standardisation is not None:
+            self.standardise_with(standardisation)
         self._features = self.task_vector(base.get_task())
         # float32, as the networks read it (MuJoCo's float64 observations would double the replay buffer: a 500k Ant
         # buffer is 0.9 GB in float64)
@@ -75,6 +88,29 @@ class TaskObservation(gym.ObservationWrapper):
             high=np.concatenate([space.high, np.full(self.task_dim, np.inf)]).astype(np.float32),
             dtype=np.float32,
         )
+
+    @property
+    def standardisation(self) -> dict[str, list[float]]:
+        """The mean and standard deviation the task features are standardised with (JSON-serialisable)."""
+        return {"mean": [float(x) for x in self.task_mean], "std": [float(x) for x in self.task_std]}
+
+    def standardise_with(self, standardisation: Standardisation) -> None:
+        """
+        Standardise the task features with ``standardisation`` from now on (the current episode's vector included).
+
+        :param standardisation: ``{"mean": [...], "std": [...]}``, :attr:`task_dim` positive-std numbers each
+        """
+        mean = np.asarray(standardisation["mean"], dtype=np.float64)
+        std = np.asarray(standardisation["std"], dtype=np.float64)
+        if mean.shape != (self.task_dim,) or std.shape != (self.task_dim,) or not np.all(std > 0):
+            raise ValueError(
+                f"TaskObservation: the standardisation needs {self.task_dim} means and {self.task_dim} positive stds "
+                f"for {type(self.env.unwrapped).__name__}'s task features; got mean {mean.tolist()}, std {std.tolist()} "
+                "(was the model trained on another task family?)"
+            )
+        self.task_mean, self.task_std = mean, std
+        if hasattr(self, "_features"):
+            self._features = self.task_vector(self.env.unwrapped.get_task())  # type: ignore[attr-defined]
 
     def task_vector(self, task: Task) -> np.ndarray:
         """

@@ -318,6 +318,14 @@ def rollout(
     return {"return": ret, "cost": cost, "length": length, "violated": cost > 0.0, **extras}, traces
 
 
+def _told_task_standardisation(env: gym.Env) -> dict[str, Any]:
+    """The standardisation of the task vector a task-aware model was told in ``env`` (the oracle's), to record."""
+    try:
+        return {"task_standardisation": env.get_wrapper_attr("standardisation")}
+    except AttributeError:  # no task in the observation
+        return {}
+
+
 def meta_test(
     model: Any,
     env: gym.Env | VecEnv,
@@ -426,6 +434,7 @@ def meta_test(
         STEP_TRACE_KEYS_ATTR: list(trace_keys),
         "crn_seed": crn_seed,
         **({"n_prior_trajectories": n_prior_trajectories} if n_prior_trajectories != 1 else {}),
+        **_told_task_standardisation(env),
     }
     summary = summarize(rows, extra_keys=info_keys)
     return MetaTestResult(rows=rows, summary=summary, tasks=list(tasks), traces=traces, config=config)

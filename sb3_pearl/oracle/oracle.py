@@ -11,11 +11,15 @@ the cost of inferring the task.
 It has the adaptation API of every algorithm of the project, so the meta-test serves it unchanged: its k = 0
 trajectory is already informed (the task is in the observation from the first step), :meth:`adapt` does nothing,
 and every k acts with the same policy. The meta-test wraps the env it is given with :meth:`prepare_env`.
+
+The task vector's standardisation is the training distribution's (:attr:`Oracle.task_standardisation`, saved with the
+model): an env of a shifted distribution is wrapped with it, so a target beyond the training range reads as one.
 """
 
 from __future__ import annotations
 
 import functools
+import warnings
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -26,7 +30,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from stable_baselines3.sac.policies import SACPolicy
 
 from sb3_pearl.common.meta_algorithm import forwards_arguments_to
-from sb3_pearl.envs.task_observation import TaskObservation
+from sb3_pearl.envs.task_observation import Standardisation, TaskObservation
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.finetune.discrete_sac import DiscreteSACPolicy
 from sb3_pearl.finetune.finetune import FineTune
@@ -34,25 +38,31 @@ from sb3_pearl.finetune.finetune import FineTune
 _FINE_TUNING_KWARGS = ("adapt_gradient_steps", "adapt_batch_size", "adapt_learning_rate", "adapt_buffer_size")
 
 
-def with_task_observation(env: gym.Env | VecEnv) -> gym.Env | VecEnv:
+def with_task_observation(env: gym.Env | VecEnv, standardisation: Standardisation | None = None) -> gym.Env | VecEnv:
     """
-    ``env`` with the task in its observations (:class:`TaskObservation`), unchanged if it already has it.
+    ``env`` with the task in its observations (:class:`TaskObservation`); an env that already has it is kept, its
+    task vector standardised with ``standardisation`` when one is given.
 
     :param env: a task-family env, or a ``DummyVecEnv`` of them (rebuilt around the wrapped envs)
+    :param standardisation: the task vector's standardisation (the training distribution's); ``None``: ``env``'s own
     :return: the env the oracle acts in
     """
     if isinstance(env, VecEnv):
         if all(env.env_is_wrapped(TaskObservation)):
+            if standardisation is not None:
+                env.env_method("standardise_with", standardisation)
             return env
         if type(env) is DummyVecEnv:
-            return DummyVecEnv([functools.partial(TaskObservation, inner) for inner in env.envs])
+            return DummyVecEnv([functools.partial(TaskObservation, inner, standardisation) for inner in env.envs])
         raise ValueError(
             f"Oracle: the {type(env).__name__} given does not put the task in its observations; build its envs with "
             "wrapper_class=sb3_pearl.envs.task_observation.TaskObservation (make_vec_env) or pass a single env"
         )
     if is_wrapped(env, TaskObservation):
+        if standardisation is not None:
+            env.get_wrapper_attr("standardise_with")(standardisation)
         return env
-    return TaskObservation(env)
+    return TaskObservation(env, standardisation)
 
 
 @forwards_arguments_to(FineTune, refused=_FINE_TUNING_KWARGS)
@@ -73,6 +83,11 @@ class Oracle(FineTune):
     :param _init_setup_model: build the networks at construction
     :param kwargs: SAC's arguments, as :class:`~sb3_pearl.finetune.discrete_sac.DiscreteSAC` takes them
         (``learning_rate``, ``buffer_size``, ``batch_size``, ``gamma``, ``ent_coef``, ``policy_kwargs``, ``seed``, ...)
+
+    :attr:`task_standardisation` is the task vector's standardisation, taken from the training env (``env``) and saved
+    with the model; every env the oracle acts in (``set_env``, ``load(env=...)``, :meth:`prepare_env`) is standardised
+    with it. A model saved before it was recorded takes it from the env given to ``load`` (the training distribution,
+    as the run's own env is), or, loaded without one, from each env :meth:`prepare_env` wraps, with a warning.
     """
 
     # Every Oracle zip holds these (load() refuses one without them, e.g. a Fine-Tune zip: its policy sees no task).
@@ -95,6 +110,7 @@ class Oracle(FineTune):
         if given:
             raise ValueError(f"Oracle does not fine-tune (it is told the task): remove {given}")
         self.task_aware = True
+        self.task_standardisation: dict[str, list[float]] | None = None
         super().__init__(
             policy,
             env,
@@ -113,14 +129,39 @@ class Oracle(FineTune):
         """SB3's wrapping (Monitor, DummyVecEnv) around the env with the task in its observation."""
         return BaseAlgorithm._wrap_env(with_task_observation(env), verbose, monitor_wrapper)  # type: ignore[arg-type]
 
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self._standardise_own_env()
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        super().set_env(env, force_reset)
+        self._standardise_own_env()
+
+    def _standardise_own_env(self) -> None:
+        """The training env sets :attr:`task_standardisation` if it is unset; otherwise the env takes the model's."""
+        if self.env is None:
+            return
+        if self.task_standardisation is None:
+            self.task_standardisation = self.env.get_attr("standardisation", indices=[0])[0]
+        else:
+            self.env.env_method("standardise_with", self.task_standardisation)
+
     def prepare_env(self, env: gym.Env | VecEnv) -> gym.Env | VecEnv:
         """
-        The env as the oracle acts in it: ``env`` with the task in its observation (the meta-test calls this).
+        The env as the oracle acts in it: ``env`` with the task in its observation, standardised as in training (the
+        meta-test calls this).
 
         :param env: a task-family env or a VecEnv of one
         :return: the wrapped env
         """
-        return with_task_observation(env)
+        if self.task_standardisation is None:
+            warnings.warn(
+                "Oracle: this model was saved without its task standardisation and loaded without an env; the task "
+                "vector is standardised over the distribution of the env it acts in, which is right only for the "
+                "training distribution (load it with env=<its training env> for a shifted one)",
+                stacklevel=2,
+            )
+        return with_task_observation(env, self.task_standardisation)
 
     def adapt(self) -> None:
         """Nothing to adapt: the oracle is told the task."""

@@ -712,6 +712,7 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
                             start_piece(state, slot, current.task)
             state.collected += len(active)
             self.num_timesteps += len(active)
+            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)  # a learning-rate schedule's
             obs = np.array(new_obs, dtype=np.float32)
             self._update_info_buffer([infos[i] for i in active], dones[active])
             callback.update_locals(locals())
@@ -894,6 +895,10 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
                 f"{path} does not hold a MetaReplayBuffer (per-task buffers saved by PEARL / PEARL+ save_replay_buffer)"
             )
         if buffer.n_tasks != len(self.train_tasks):
-            raise ValueError(f"the replay buffer holds {buffer.n_tasks} tasks but the model has {len(self.train_tasks)}")
+            raise ValueError(
+                f"{path} holds the per-task buffers of {buffer.n_tasks} training tasks but this model has "
+                f"{len(self.train_tasks)}: load the replay buffer saved with this model, or construct the model with "
+                f"n_train_tasks={buffer.n_tasks} and the buffer's tasks (train_tasks=...)"
+            )
         check_buffer_tasks(buffer, self.train_tasks, path)
         self.replay_buffer = buffer
