@@ -318,12 +318,13 @@ def rollout(
     return {"return": ret, "cost": cost, "length": length, "violated": cost > 0.0, **extras}, traces
 
 
-def _told_task_standardisation(env: gym.Env) -> dict[str, Any]:
+def _told_task_standardisation(env: gym.Env | VecEnv) -> dict[str, Any]:
     """The standardisation of the task vector a task-aware model was told in ``env`` (the oracle's), to record."""
     try:
-        return {"task_standardisation": env.get_wrapper_attr("standardisation")}
+        told = env.get_attr("standardisation")[0] if isinstance(env, VecEnv) else env.get_wrapper_attr("standardisation")
     except AttributeError:  # no task in the observation
         return {}
+    return {"task_standardisation": told}
 
 
 def meta_test(
