@@ -7,9 +7,10 @@ training task, about 1 m/s, so those shifted numbers measure an oracle told the 
 the competence check and the velocity records act in the training distribution and were right.
 
 ``reproduce measure`` finds such records (a task-aware run's ``shift`` whose config records no
-``task_standardisation``), loads the run's ``model.zip`` with its training env (which gives an older model its training
-standardisation), meta-tests it again on the shifted env with the same settings, eval seed and tasks as the run did,
-and replaces the ``shift`` section, marked ``remeasured`` with the reason and the CPU. The old numbers stay in git.
+``task_standardisation``), loads the run's ``model.zip`` (an older one is given its training env's standardisation,
+as in its training; loading it with that env would refuse the zips saved with float64 observation spaces), meta-tests
+it again on the shifted env with the same settings, eval seed and tasks as the run did, and replaces the ``shift``
+section, marked ``remeasured`` with the reason and the CPU. The old numbers stay in git.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+
+from sb3_pearl.envs.task_observation import TaskObservation
 
 REMEASURED_REASON = (
     "the task vector had been standardised over the shifted env's tasks instead of the training distribution's; "
@@ -59,7 +62,9 @@ def remeasure_oracle_shift(folder: Path, result: dict[str, Any]) -> dict[str, An
     shift_env = gym.make(family.env_id, **shift_kwargs)
     try:
         algo = experiment.variant(result["variant"]).algo
-        model = algorithm_class(algo).load(folder / MODEL_FILE, env=train_env, device="cpu")  # type: ignore[attr-defined]
+        model = algorithm_class(algo).load(folder / MODEL_FILE, device="cpu")  # type: ignore[attr-defined]
+        if model.task_standardisation is None:  # saved before it was recorded: the training env's, as in its training
+            model.task_standardisation = TaskObservation(train_env).standardisation
         label = f"{result['experiment']} {result['family']} {result['variant']} seed{result['seed']}"
         settings = result["budget"]["shift_meta_test"]
         record = held_out_record(model, shift_env, settings, result["eval_seed"], shift_kwargs, label)
