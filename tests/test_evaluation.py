@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from gymnasium import spaces
 from stable_baselines3.common.logger import configure
-from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
 from sb3_pearl import PEARLPlus
 from sb3_pearl.envs.task_protocol import MetaTaskEnv
@@ -252,6 +252,12 @@ def test_vec_envs_give_the_same_rows() -> None:
     _, wrapped = run_protocol(VecMonitor(DummyVecEnv([GuessEnv])))  # generic VecEnv path (auto-reset, terminal obs)
     assert dummy.rows == reference.rows
     assert wrapped.rows == reference.rows
+    # a worker process: the meta-test asks whether the env tells a task before reading what it tells (a missing
+    # attribute would end the worker); an env without the task in its observation records no standardisation
+    subproc_env = SubprocVecEnv([GuessEnv])
+    _, subproc = run_protocol(subproc_env)
+    subproc_env.close()
+    assert subproc.rows == reference.rows and "task_standardisation" not in subproc.config
 
 
 def test_clear_errors() -> None:

@@ -30,12 +30,14 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from sb3_pearl.common.adaptation import AdaptiveModel, check_adaptive
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.seeding import derived_seed, get_global_rng_state, seed_global_rngs, set_global_rng_state
 from sb3_pearl.common.tasks import set_vec_env_task
+from sb3_pearl.envs.task_observation import TaskObservation
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.evaluation.progress import ProgressBar
 from sb3_pearl.evaluation.statistics import format_summary_table, summarize
@@ -320,11 +322,11 @@ def rollout(
 
 def _told_task_standardisation(env: gym.Env | VecEnv) -> dict[str, Any]:
     """The standardisation of the task vector a task-aware model was told in ``env`` (the oracle's), to record."""
-    try:
-        told = env.get_attr("standardisation")[0] if isinstance(env, VecEnv) else env.get_wrapper_attr("standardisation")
-    except AttributeError:  # no task in the observation
-        return {}
-    return {"task_standardisation": told}
+    if isinstance(env, VecEnv):  # asked first: a missing attribute would end a SubprocVecEnv's worker
+        told = env.get_attr("standardisation", indices=[0])[0] if env.env_is_wrapped(TaskObservation, indices=[0])[0] else None
+    else:
+        told = env.get_wrapper_attr("standardisation") if is_wrapped(env, TaskObservation) else None
+    return {} if told is None else {"task_standardisation": told}
 
 
 def meta_test(
