@@ -9,6 +9,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch as th
 import pytest
 from gymnasium import spaces
 from stable_baselines3.common.logger import configure
@@ -378,3 +379,15 @@ def test_ant_goal_distance_is_the_torsos_euclidean_distance_to_the_goal() -> Non
     expected = np.hypot(info["x_position"] - 1.5, info["y_position"] + 2.0)
     assert info["distance"] == pytest.approx(expected)
     assert -info["reward_forward"] == pytest.approx(abs(info["x_position"] - 1.5) + abs(info["y_position"] + 2.0))
+
+
+def test_callback_evaluations_leave_training_unchanged(tiny_kwargs: dict[str, Any]) -> None:
+    """A run with meta-test evaluations trains on the same random numbers as one without: the same weights."""
+
+    def trained(evaluate: bool) -> list[th.Tensor]:
+        model = PEARLPlus("MlpPolicy", "SafePointGoalMeta-v0", seed=0, **tiny_kwargs)
+        callback = MetaTestCallback(gym.make("SafePointGoalMeta-v0"), eval_freq=60, n_tasks=2, n_adapt=1) if evaluate else None
+        model.learn(200, callback=callback)
+        return [p.detach().clone() for p in model.policy.parameters()]
+
+    assert all(th.equal(a, b) for a, b in zip(trained(True), trained(False), strict=True))

@@ -14,6 +14,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import check_adaptive
 from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.common.seeding import get_global_rng_state, set_global_rng_state
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import MetaTestResult
@@ -102,7 +103,11 @@ class MetaTestCallback(BaseCallback):
             progress_bar=self.verbose >= 1,
             description="Meta-test (Ctrl-C stops training after it)",
         )
+        # the meta-test restored the global RNGs; leaving the adaptation state (PEARL draws a prior z) must not move
+        # them either, or a run with evaluations would train on other random numbers than one without
+        rng_state = get_global_rng_state()
         self.model.reset_adaptation()  # type: ignore[attr-defined]
+        set_global_rng_state(rng_state)
         self.last_result = result
         self.n_evaluations += 1
         for entry in result.summary:
