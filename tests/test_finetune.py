@@ -188,6 +188,42 @@ def test_adapt_fine_tunes_a_copy_toward_lower_critic_loss_on_the_observed_data()
     assert model._n_updates == 300 - TINY_FT["learning_starts"]  # adaptation steps do not count as training
 
 
+class _TerminalAtTheTimeLimit(gym.Wrapper):
+    """Ends every episode in a terminal state at the time limit's step (as Highway-Merge's failure to merge does)."""
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, float(reward), terminated or truncated, False, info
+
+
+def test_the_meta_test_tells_a_terminal_state_at_the_time_limit_from_a_cut() -> None:
+    """Through the meta-test's rollout, the last transition is terminal when the env terminated at the time limit's
+    step, and bootstrapped when a step cap or the time limit cut the episode; without the keyword (the adaptation
+    API's five arguments), the step count decides."""
+    from sb3_pearl.evaluation.meta_test import SingleEnvRunner, observes_truncation
+    from sb3_pearl.evaluation.meta_test import rollout as meta_rollout
+
+    model = tiny_model(learn=0)
+    assert observes_truncation(model) and model.max_episode_steps == 20
+
+    def last_stored(env: gym.Env, max_steps: int | None = None) -> tuple[float, float]:
+        runner = SingleEnvRunner(env)
+        runner.set_task(model.test_tasks[0])
+        runner.seed(0)
+        model.reset_adaptation()
+        values, _ = meta_rollout(model, runner, max_steps=max_steps)
+        buffer = model._adapt_buffer
+        assert buffer is not None and buffer.pos == values["length"]
+        return float(buffer.dones[buffer.pos - 1, 0]), float(buffer.timeouts[buffer.pos - 1, 0])
+
+    assert last_stored(_TerminalAtTheTimeLimit(gym.make("PointGoalMeta-v0"))) == (1.0, 0.0)  # terminal, at step 20
+    assert last_stored(gym.make("PointGoalMeta-v0")) == (1.0, 1.0)  # the time limit: a cut
+    assert last_stored(gym.make("PointGoalMeta-v0"), max_steps=5) == (1.0, 1.0)  # a step cap: a cut
+    model.reset_adaptation()
+    rollout(model, model.test_tasks[0], deterministic=True)  # observe() with five arguments: the step count decides
+    assert model._adapt_buffer is not None and model._adapt_buffer.timeouts[19, 0] == 1.0
+
+
 def test_reset_adaptation_restores_the_pretrained_weights_and_optimizers() -> None:
     model = tiny_model(learn=300)
     pretrained_actions = probe_actions(model)

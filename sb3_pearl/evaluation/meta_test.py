@@ -21,6 +21,7 @@ columns are :data:`PAPER_KS`.
 from __future__ import annotations
 
 import csv
+import inspect
 import json
 import math
 import os
@@ -274,6 +275,22 @@ class SingleEnvRunner:
         return next_obs, float(reward), bool(terminated), bool(truncated), info
 
 
+def observes_truncation(model: Any) -> bool:
+    """
+    Whether ``model.observe`` takes the optional ``truncated`` keyword (Fine-Tune's and the oracle's do): the meta-test
+    then tells it whether an ending step was a cut (time limit, step cap) or a terminal state. The adaptation API's
+    five arguments stay the contract; a model without the keyword is called with them.
+
+    :param model: the adaptive model
+    :return: whether to pass ``truncated=``
+    """
+    try:
+        parameters = inspect.signature(model.observe).parameters
+    except (TypeError, ValueError):  # a builtin or C callable: the contract's five arguments
+        return False
+    return "truncated" in parameters
+
+
 def rollout(
     model: AdaptiveModel,
     env: SingleEnvRunner,
@@ -297,6 +314,7 @@ def rollout(
         trace_keys = env.family_keys(STEP_TRACE_KEYS_ATTR)
     if info_keys is None:
         info_keys = env.family_keys(TRAJECTORY_INFO_KEYS_ATTR)
+    tells_truncation = observes_truncation(model)
     obs = env.reset()
     ret, cost, length = 0.0, 0.0, 0
     extras: dict[str, Any] = {}
@@ -305,8 +323,13 @@ def rollout(
     while not done:
         action, _ = model.predict(obs, deterministic=deterministic)
         next_obs, reward, terminated, truncated, info = env.step(action)
-        done = terminated or truncated or (max_steps is not None and length + 1 >= max_steps)
-        model.observe(obs, action, reward, next_obs, done)
+        capped = max_steps is not None and length + 1 >= max_steps
+        done = terminated or truncated or capped
+        if tells_truncation:  # a cut (time limit, step cap) is not a terminal state, even at the time limit's step
+            observe: Any = model.observe  # the optional keyword, beyond the protocol's five arguments
+            observe(obs, action, reward, next_obs, done, truncated=(truncated or capped) and not terminated)
+        else:
+            model.observe(obs, action, reward, next_obs, done)
         ret += reward
         cost += float(info.get("cost", 0.0))
         length += 1
