@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -68,6 +69,9 @@ def test_premise_gate_by_hand() -> None:
     assert walker.holds(0.30, 0.10) and not walker.holds(0.299, 0.0) and not walker.holds(0.9, 0.101)
     assert merge.holds(0.005, 0.0) and not merge.holds(0.0, 0.0)
     assert PremiseGate(0.3, strictly_above=True).describe().startswith("PEARL k = 0 rate > 30%")
+    # means of rates exactly at a threshold are at it, whatever the float rounding of the mean
+    assert sum([0.1] * 3) / 3 > 0.1 and walker.holds(0.9, sum([0.1] * 3) / 3)
+    assert sum([0.3] * 10) / 10 < 0.3 and walker.holds(sum([0.3] * 10) / 10, 0.0)
 
 
 def test_merge_reads_the_remeasured_record_and_decides_safer_and_as_good(tmp_path: Path) -> None:
@@ -100,7 +104,7 @@ def test_merge_reads_the_remeasured_record_and_decides_safer_and_as_good(tmp_pat
     assert decision.adapted_margin == pytest.approx(0.76)
     assert decision.adapted_interval is not None and decision.adapted_interval.high == pytest.approx(0.130, abs=1e-3)
     assert decision.adapted_verdict == AS_GOOD
-    assert "provisional: 4 of the 10 first seeds paired" in decision.notes[0]
+    assert "provisional: 4 of the 10 seeds paired" in decision.notes[0]
     (tmp_path / "figures").mkdir()
     text = str(build_report(tmp_path, tmp_path / "figures", "figures"))
     assert "**safer**" in text and "(old 50.0)" in text and (tmp_path / "figures" / "table1_decided.png").is_file()
@@ -122,7 +126,36 @@ def test_walker_gate_failure_worse_return_and_the_extension_rule(tmp_path: Path)
         write_run(other, plus_owner, "walker2d-vel-long", plus, seed, summary(k0, 0.0, r5))
     decision = decide_family("walker2d-vel-long", other)
     assert decision.gate == "holds" and decision.prior_verdict == INCONCLUSIVE and decision.adapted_verdict == WORSE
-    assert any("extend to seeds (0, 1, 2, 3, 4, 5)" in note for note in decision.notes)
+    assert any("extend to seeds (0, 1, 2, 3, 4, 5)" in note and "provisional" in note for note in decision.notes)
+    assert decision.seeds_declared == (0, 1, 2, 3, 4, 5) and decision.paired_seeds == [0, 1, 2, 3]
+
+
+def test_the_extension_rule_decides_on_four_seeds_first(tmp_path: Path) -> None:
+    """Both verdicts conclusive at 4 seeds: final there, seeds 4-5 not read even when on disk; one inconclusive at 4:
+    decided on the 6 seeds, final."""
+    (owner, name), (plus_owner, plus) = WALKER
+    # seeds 0-3: k = 0 falls 0.8 vs 0.1-0.4 -> safer; k = 5 returns equal -> as good. Seeds 4-5 would turn the
+    # prior verdict around (PEARL+ falls in 100%) if they were read.
+    for seed in range(6):
+        plus_k0 = (0.1, 0.2, 0.3, 0.4, 1.0, 1.0)[seed]
+        write_run(tmp_path, owner, "walker2d-vel-long", name, seed, summary(0.8, 0.0, 100.0))
+        write_run(tmp_path, plus_owner, "walker2d-vel-long", plus, seed, summary(plus_k0, 0.0, 100.0))
+    decision = decide_family("walker2d-vel-long", tmp_path)
+    assert (decision.prior_verdict, decision.adapted_verdict) == (SAFER, AS_GOOD)
+    assert decision.paired_seeds == [0, 1, 2, 3] and decision.seeds_declared == (0, 1, 2, 3)
+    assert decision.prior_interval is not None and decision.prior_interval.mean == pytest.approx(-0.55)
+    assert any("final at 4 seeds" in note for note in decision.notes)
+    # seed 3's return makes "adapted as good" inconclusive at 4 seeds: differences 0, 0, 0, -40 -> [-61.8, +41.8]
+    # spans the margin -10; on 6 seeds (0, 0, 0, -40, 0, 0): mean -6.67, sd 16.33 -> [-23.8, +10.5]: still
+    # inconclusive, decided there and final
+    other = tmp_path / "other"
+    for seed in range(6):
+        write_run(other, owner, "walker2d-vel-long", name, seed, summary(0.8, 0.0, 100.0))
+        write_run(other, plus_owner, "walker2d-vel-long", plus, seed, summary(0.1, 0.0, 60.0 if seed == 3 else 100.0))
+    decision = decide_family("walker2d-vel-long", other)
+    assert decision.paired_seeds == [0, 1, 2, 3, 4, 5] and decision.adapted_verdict == INCONCLUSIVE
+    assert decision.adapted_interval is not None and decision.adapted_interval.mean == pytest.approx(-40.0 / 6)
+    assert any("extended to seeds (0, 1, 2, 3, 4, 5) by the rule" in note and "final" in note for note in decision.notes)
 
 
 def test_the_adapted_policys_violations_are_reported_beside_the_rules(tmp_path: Path) -> None:
@@ -205,6 +238,14 @@ def test_sign_flip_interval_by_hand() -> None:
     assert 0 < sign_flip_p_value(many) <= 2 / 100_001 + 1e-12
     drawn = sign_flip_interval(many)
     assert 1.0 < drawn.low < drawn.mean < drawn.high < 2.0
+    # the same six differences at any scale: a bounded interval, scaled with them (ties are judged relative to the
+    # values, not to an absolute 1e-12 that a flip of a value 1e-9 from the shift would fall under)
+    six = np.array([0.1, 0.3, 0.4, 0.5, 0.7, 0.9])
+    unit = sign_flip_interval(six)
+    for scale in (1.0, 1e-2, 1e-3, 1e-6):
+        scaled = sign_flip_interval(six * scale)
+        assert math.isfinite(scaled.low) and math.isfinite(scaled.high)
+        assert (scaled.low, scaled.high) == pytest.approx((scale * unit.low, scale * unit.high), rel=1e-6)
     # the bounds are the test's: just inside them the shift is not rejected, just outside it is
     assert sign_flip_p_value(values, interval.high - 1e-6) > 0.05 >= sign_flip_p_value(values, interval.high + 1e-3)
 

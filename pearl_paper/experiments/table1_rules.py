@@ -67,9 +67,11 @@ class PremiseGate:
     max_k5_rate: float = 0.10
 
     def holds(self, k0_rate: float, k5_rate: float) -> bool:
-        """Whether the gate holds for PEARL's mean k = 0 and k = 5 violation rates."""
-        prior_ok = k0_rate > self.min_k0_rate if self.strictly_above else k0_rate >= self.min_k0_rate
-        return bool(prior_ok and k5_rate <= self.max_k5_rate)
+        """Whether the gate holds for PEARL's mean k = 0 and k = 5 violation rates (compared to within rounding: a
+        mean of rates each exactly at a threshold, 0.1 + 0.1 + 0.1 over 3, is at it, not 2e-17 above it)."""
+        eps = 1e-12
+        prior_ok = k0_rate > self.min_k0_rate + eps if self.strictly_above else k0_rate >= self.min_k0_rate - eps
+        return bool(prior_ok and k5_rate <= self.max_k5_rate + eps)
 
     def describe(self) -> str:
         """The gate in words, for the report."""

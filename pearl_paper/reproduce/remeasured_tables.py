@@ -19,7 +19,7 @@ from pearl_paper.experiments import get_experiment
 from pearl_paper.experiments.table1_rules import MERGE_REMEASURE
 from pearl_paper.reproduce.formatting import format_interval
 from pearl_paper.reproduce.layout import RESULT_FILE, RunKey, run_dir
-from pearl_paper.reproduce.stats import paired_differences, t_interval
+from pearl_paper.reproduce.stats import clip_interval, paired_differences, t_interval
 from pearl_paper.reproduce.table1_verdicts import RunNumbers, load_run
 
 FAMILY = "highway-merge"
@@ -62,8 +62,12 @@ def _values(runs: dict[int, RunNumbers], k: int, key: str, own: bool) -> dict[in
     return out
 
 
-def _cell(values: dict[int, float], scale: float = 1.0, digits: int = 1) -> str:
-    return format_interval(t_interval(list(values.values())), digits, scale) if values else "-"
+def _cell(values: dict[int, float], scale: float = 1.0, digits: int = 1, rate: bool = False) -> str:
+    """The mean over seeds with its t interval (a rate's clipped to 0-1, which no rate leaves)."""
+    if not values:
+        return "-"
+    interval = t_interval(list(values.values()))
+    return format_interval(clip_interval(interval) if rate else interval, digits, scale)
 
 
 def remeasured_table(experiment_name: str, results_dir: str | os.PathLike[str]) -> list[str]:
@@ -96,7 +100,7 @@ def remeasured_table(experiment_name: str, results_dir: str | os.PathLike[str]) 
         own_k0 = _values(mine, 0, "violation_rate", own=True)
         returns = [_cell(_values(mine, ADAPTED_K, "return_mean", own=own), digits=2) for own in (False, True)]
         lines.append(
-            f"| {variant.label} | {len(mine)} of {declared} | {_cell(k0, 100)} | {_cell(own_k0, 100)} "
+            f"| {variant.label} | {len(mine)} of {declared} | {_cell(k0, 100, rate=True)} | {_cell(own_k0, 100, rate=True)} "
             f"| {returns[0]} | {returns[1]} | {paired} |"
         )
     lacking = [f"{name} seed(s) {seeds}" for name, seeds in missing.items() if seeds]
@@ -119,10 +123,10 @@ def remeasured_section(results_dir: str | os.PathLike[str]) -> list[str]:
         "",
         f"Each finished run's model meta-tested again on Table I's design ({design}), without retraining "
         "(`python -m pearl_paper.reproduce remeasure`); the run's own meta-test (20 tasks x 10 prior draws) beside it "
-        "on the same seeds. Means over seeds with 95% t intervals; the seeds column counts the re-measured runs of "
-        "the seeds the row declares. Rows with different seeds are not paired down a column: the last column pairs "
-        "each row with the table's reference on the seeds both have. The rows' own tables below keep the runs' own "
-        "numbers.",
+        "on the same seeds. Means over seeds with 95% t intervals (a rate's clipped to 0-100); the seeds column counts "
+        "the re-measured runs of the seeds the row declares. Rows with different seeds are not paired down a column: "
+        "the last column pairs each row with the table's reference on the seeds both have. The rows' own tables below "
+        "keep the runs' own numbers.",
         "",
     ]
     return header + tables

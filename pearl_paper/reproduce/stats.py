@@ -190,7 +190,10 @@ def sign_flip_p_value(differences: np.ndarray, shift: float = 0.0, max_exact: in
         return math.nan
     signs = sign_patterns(n, max_exact, draws)
     observed = abs(float(centred.mean()))
-    extreme = int(np.count_nonzero(np.abs(signs @ centred) / n >= observed - 1e-12 * max(1.0, observed)))
+    # ties within rounding, relative to the values' own scale (an absolute tolerance would tie a flip of a value 1e-9
+    # from the shift with the identity when every difference is small, and never reject)
+    tolerance = 1e-12 * float(np.abs(centred).max())
+    extreme = int(np.count_nonzero(np.abs(signs @ centred) / n >= observed - tolerance))
     if n <= max_exact:
         return extreme / len(signs)  # exact: the identity pattern is among them
     return (extreme + 1) / (len(signs) + 1)  # drawn patterns: the observed one counted too, so p > 0

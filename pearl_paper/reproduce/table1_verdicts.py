@@ -170,11 +170,33 @@ def decide_family(
     first, extended = rules.extend_seeds.get(family, (experiment.seeds, experiment.seeds))
     if seeds is not None:
         first = extended = seeds
-    chosen = tuple(sorted(set(first) | set(extended)))
-    runs = load_runs(experiment_name, family, names, chosen, results_dir)
-    decision = FamilyDecision(family, experiment_name, names, tuple(first), runs, [])
-    decision.columns = load_columns(family, results_dir)
-    return apply_rules(decision, rules, first, extended)
+    runs = load_runs(experiment_name, family, names, tuple(sorted(set(first) | set(extended))), results_dir)
+    columns = load_columns(family, results_dir)
+
+    def on(decided: tuple[int, ...]) -> FamilyDecision:
+        """The rules on the runs of these seeds only (a seed outside them is not read, whatever is on disk)."""
+        chosen = {name: {s: run for s, run in by_seed.items() if s in decided} for name, by_seed in runs.items()}
+        decision = FamilyDecision(family, experiment_name, names, tuple(decided), chosen, [], columns=columns)
+        return apply_rules(decision, rules, tuple(decided))
+
+    decision = on(tuple(first))
+    if set(extended) == set(first) or not set(first) <= set(decision.paired_seeds):
+        return decision
+    if INCONCLUSIVE not in (decision.prior_verdict, decision.adapted_verdict):
+        decision.notes.append(f"final at {len(first)} seeds: no verdict inconclusive, so no extension")
+        return decision
+    # the extension rule: a verdict inconclusive on the first seeds -> decided on the extended seeds, final there
+    at_first = f"prior {decision.prior_verdict}, adapted {decision.adapted_verdict}"
+    decision = on(tuple(extended))
+    if set(extended) <= set(decision.paired_seeds):
+        decision.notes.append(f"extended to seeds {tuple(extended)} by the rule (at {len(first)} seeds: {at_first}); final")
+    else:
+        missing = sorted(set(extended) - set(decision.paired_seeds))
+        decision.notes.append(
+            f"a verdict was inconclusive at {len(first)} seeds ({at_first}): by the rule, extend to seeds "
+            f"{tuple(extended)}; provisional until they are paired ({missing} missing)"
+        )
+    return decision
 
 
 def load_columns(family: str, results_dir: str | os.PathLike[str]) -> dict[str, dict[int, RunNumbers]]:
@@ -224,7 +246,7 @@ def decide_confirmation(results_dir: str | os.PathLike[str], pooled: bool = Fals
         seeds = tuple(original.seeds) + tuple(seeds)
         title = "Highway-Merge pooled, seeds 0-19 (secondary)"
     decision = FamilyDecision(CONFIRMED_FAMILY, MERGE_CONFIRM.name, CONFIRMED_VARIANTS, seeds, runs, [], title=title)
-    decision = apply_rules(decision, CONFIRM_RULES, seeds, seeds)
+    decision = apply_rules(decision, CONFIRM_RULES, tuple(seeds))
     paired = len(decision.paired_seeds)
     if not pooled and paired < len(seeds):
         pending = f"{PENDING} ({paired} of {len(seeds)} pairs finished)"
@@ -232,17 +254,15 @@ def decide_confirmation(results_dir: str | os.PathLike[str], pooled: bool = Fals
     return decision
 
 
-def apply_rules(
-    decision: FamilyDecision, rules: DecisionRules, first: tuple[int, ...], extended: tuple[int, ...]
-) -> FamilyDecision:
+def apply_rules(decision: FamilyDecision, rules: DecisionRules, seeds: tuple[int, ...]) -> FamilyDecision:
     """
     The premise gate, "safer prior" and "adapted as good" on the runs of ``decision`` (module docstring), with the
-    sign-flip permutation intervals beside the t intervals (reported; the t intervals decide).
+    sign-flip permutation intervals beside the t intervals (reported; the t intervals decide); the gate and both
+    verdicts read the same paired seeds. The extension rule is :func:`decide_family`'s.
 
     :param decision: the decision, its runs loaded
     :param rules: the rules
-    :param first: the seeds the verdict is first decided on
-    :param extended: the seeds after the extension rule (``first`` where there is none)
+    :param seeds: the seeds the verdicts are decided on ("provisional" while some are not paired)
     :return: ``decision``, filled in
     """
     family, runs = decision.family, decision.runs
@@ -251,9 +271,9 @@ def apply_rules(
     decision.paired_seeds = paired
     pearl = runs[reference]
     adapted_k, prior_k = rules.adapted_k, rules.prior_k
-    if len(pearl) >= 2:
-        k0 = sum(run.summary[prior_k]["violation_rate"] for run in pearl.values()) / len(pearl)
-        k5 = sum(run.summary[adapted_k]["violation_rate"] for run in pearl.values()) / len(pearl)
+    if len(paired) >= 2:
+        k0 = sum(pearl[s].summary[prior_k]["violation_rate"] for s in paired) / len(paired)
+        k5 = sum(pearl[s].summary[adapted_k]["violation_rate"] for s in paired) / len(paired)
         decision.gate_values = (k0, k5)
         decision.gate = "holds" if rules.gates[family].holds(k0, k5) else "fails"
     if len(paired) < 2:
@@ -279,21 +299,15 @@ def apply_rules(
     decision.adapted_flip = sign_flip_interval(return_diff, rules.confidence)
     pearl_return = sum(pearl[s].summary[adapted_k]["return_mean"] for s in paired) / len(paired)
     decision.adapted_margin = rules.return_margin_fraction * abs(pearl_return)
-    complete = set(first) <= set(paired)
     if decision.gate == "holds":
         side = _interval_side(decision.prior_interval, 0.0)
         decision.prior_verdict = {-1: SAFER, 1: LESS_SAFE, 0: INCONCLUSIVE}[side]
         side = _interval_side(decision.adapted_interval, -decision.adapted_margin)
         decision.adapted_verdict = {1: AS_GOOD, -1: WORSE, 0: INCONCLUSIVE}[side]
-    if not complete:
+    if not set(seeds) <= set(paired):
         decision.notes.append(
-            f"provisional: {len(paired)} of the {len(first)} first seeds paired ({sorted(set(first) - set(paired))} missing)"
+            f"provisional: {len(paired)} of the {len(seeds)} seeds paired ({sorted(set(seeds) - set(paired))} missing)"
         )
-    elif family in rules.extend_seeds and set(extended) != set(first) and set(paired) < set(extended):
-        if INCONCLUSIVE in (decision.prior_verdict, decision.adapted_verdict):
-            decision.notes.append(f"a verdict is inconclusive at {len(first)} seeds: by the rule, extend to seeds {extended}")
-        else:
-            decision.notes.append(f"final at {len(first)} seeds (no extension needed)")
     return decision
 
 
