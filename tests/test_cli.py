@@ -120,8 +120,7 @@ def test_zoo_meta_test_is_the_harness_meta_test(trained: Path) -> None:
     """One meta-test: train.py's meta_test.csv / .json hold the numbers the harness's held-out phase gives the same model."""
     import gymnasium as gym
 
-    from pearl_paper.reproduce.runner import held_out_record
-    from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED
+    from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, held_out_record
 
     run_dir = trained / "pearlplus" / f"{ENV_ID}_1"
     model = PEARLPlus.load(run_dir / f"{ENV_ID}.zip")

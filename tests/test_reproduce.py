@@ -19,7 +19,6 @@ from pearl_paper.reproduce.cli import main
 from pearl_paper.reproduce.competence import criterion_value, evaluate_competence
 from pearl_paper.reproduce.layout import RESULT_KEYS, parse_seeds, write_json_atomic
 from pearl_paper.reproduce.report import BEGIN, END, GENERATED, splice
-from pearl_paper.reproduce.runner import held_out_record
 from pearl_paper.reproduce.stats import (
     INCONCLUSIVE,
     NOT_REPRODUCED,
@@ -40,6 +39,7 @@ from sb3_pearl.budgets import (
     model_kwargs,
     validate_entry,
 )
+from sb3_pearl.evaluation.held_out import held_out_record
 from sb3_pearl.evaluation.meta_test import MetaTestResult
 from tests.conftest import (
     Completed,

@@ -21,6 +21,7 @@ from typing import Any
 import gymnasium as gym
 
 from sb3_pearl.envs.task_observation import TaskObservation
+from sb3_pearl.evaluation.held_out import held_out_record
 
 REMEASURED_REASON = (
     "the task vector had been standardised over the shifted env's tasks instead of the training distribution's; "
@@ -44,12 +45,11 @@ def remeasure_oracle_shift(folder: Path, result: dict[str, Any]) -> dict[str, An
 
     :param folder: the run folder (holds ``model.zip``)
     :param result: the run's ``result.json``
-    :return: the new ``shift`` section (the record :func:`~pearl_paper.reproduce.runner.held_out_record` writes, plus
+    :return: the new ``shift`` section (the record :func:`~sb3_pearl.evaluation.held_out.held_out_record` writes, plus
         ``remeasured``)
     """
     from pearl_paper.experiments import get_experiment
     from pearl_paper.reproduce.layout import MODEL_FILE, cpu_info
-    from pearl_paper.reproduce.runner import held_out_record
     from sb3_pearl.registry import algorithm_class
 
     experiment = get_experiment(result["experiment"])

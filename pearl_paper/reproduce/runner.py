@@ -56,7 +56,7 @@ from pearl_paper.reproduce.prior_measures import compute_prior_measures
 from sb3_pearl.budgets import check_constructor_kwargs, load_budget, model_kwargs
 from sb3_pearl.common.callbacks import StopOnSignalCallback, StopRequested
 from sb3_pearl.common.threads import mark_num_threads_explicit
-from sb3_pearl.evaluation.held_out import held_out_meta_test, meta_test_record, model_test_tasks, run_meta_test
+from sb3_pearl.evaluation.held_out import held_out_record, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import json_value
 from sb3_pearl.pearl.diagnostics import compute_diagnostics
 from sb3_pearl.registry import algorithm_class
@@ -118,34 +118,6 @@ def existing_result(path: Path, budget_preset: str) -> dict[str, Any] | None:
             "use another --results-dir, or --force to replace it"
         )
     return result
-
-
-def held_out_record(
-    model: Any,
-    env: gym.Env,
-    settings: dict[str, Any],
-    eval_seed: int,
-    env_kwargs: dict[str, Any],
-    what: str = "",
-    on_trajectory_start: Callable[[int, int, int], None] | None = None,
-) -> dict[str, Any]:
-    """
-    A run's held-out meta-test as result.json stores it (``meta_test`` / ``shift``): the meta-test of every trained
-    model (:func:`~sb3_pearl.evaluation.held_out.held_out_meta_test`, train.py's too) with its wall time and env kwargs.
-
-    :param model: the trained model
-    :param env: the evaluation env (built with ``env_kwargs``)
-    :param settings: the budget's meta-test settings
-    :param eval_seed: the experiment's eval seed
-    :param env_kwargs: the env's kwargs, recorded
-    :param what: the run, for messages
-    :param on_trajectory_start: called before every trajectory (the resume tests' interruption hook)
-    :return: the record
-    """
-    start = time.time()
-    # no per-step traces in result.json (the merge family's would add megabytes per run): trace_keys=()
-    result = held_out_meta_test(model, env, settings, eval_seed, what, trace_keys=(), on_trajectory_start=on_trajectory_start)
-    return meta_test_record(result, wall_time_s=time.time() - start, env_kwargs=env_kwargs)
 
 
 class RunStopped(KeyboardInterrupt):

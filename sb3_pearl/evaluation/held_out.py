@@ -20,6 +20,7 @@ pipeline uses the tasks above (CHANGELOG).
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -182,6 +183,35 @@ def held_out_meta_test(
 def meta_test_record(result: MetaTestResult, **extra: Any) -> dict[str, Any]:
     """The result as one JSON dict (config with the eval seed, summary, paper table, tasks, rows, traces) plus ``extra``."""
     return json_value({**result.to_dict(), **extra})
+
+
+def held_out_record(
+    model: Any,
+    env: gym.Env | VecEnv,
+    settings: Mapping[str, Any],
+    eval_seed: int,
+    env_kwargs: dict[str, Any],
+    what: str = "",
+    on_trajectory_start: Callable[[int, int, int], None] | None = None,
+) -> dict[str, Any]:
+    """
+    A run's held-out meta-test as the harness's result.json stores it (``meta_test`` / ``shift``): the meta-test of
+    every trained model (:func:`held_out_meta_test`, train.py's too) with its wall time and env kwargs, without per-step
+    traces.
+
+    :param model: the trained model
+    :param env: the evaluation env (built with ``env_kwargs``)
+    :param settings: the budget's meta-test settings
+    :param eval_seed: the experiment's eval seed
+    :param env_kwargs: the env's kwargs, recorded
+    :param what: the run, for messages
+    :param on_trajectory_start: called before every trajectory (the resume tests' interruption hook)
+    :return: the record
+    """
+    start = time.time()
+    # no per-step traces in result.json (the merge family's would add megabytes per run): trace_keys=()
+    result = held_out_meta_test(model, env, settings, eval_seed, what, trace_keys=(), on_trajectory_start=on_trajectory_start)
+    return meta_test_record(result, wall_time_s=time.time() - start, env_kwargs=env_kwargs)
 
 
 def write_meta_test(result: MetaTestResult, folder: str | os.PathLike[str], title: str = "") -> dict[str, str]:
