@@ -314,6 +314,15 @@ def test_reproduce_measure_redoes_an_oracle_shift_standardised_over_the_shifted_
     before = path.stat().st_mtime_ns
     assert reproduce_main(["measure", "oracle", "--results-dir", str(tmp_path)]) == 0  # up to date: nothing to do
     assert path.stat().st_mtime_ns == before
+    # enjoy.py replays that older zip on the shifted ranges told on its training scale (the run's own env kwargs)
+    from sb3_pearl.zoo.replay import enjoy
+
+    shifted = ["--env-kwargs", "velocity_low:2.0", "velocity_high:3.0"]
+    replayed = enjoy(
+        ["--algo", "oracle", "--env", "Walker2dVelMeta-v0", "--run", str(path.parent), "--no-render"]
+        + ["--n-tasks", "1", "--n-adapt", "0", *shifted]
+    )
+    assert replayed.config["task_standardisation"] == training and replayed.tasks[0]["velocity"] >= 2.0
 
 
 def _merge_rows(failures_k0: int, failures_adapted: int, adapted_return: float) -> list[dict]:

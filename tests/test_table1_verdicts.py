@@ -118,6 +118,7 @@ def test_walker_gate_failure_worse_return_and_the_extension_rule(tmp_path: Path)
         write_run(tmp_path, plus_owner, "walker2d-vel-long", plus, seed, summary(0.1, 0.0, 100.0))
     decision = decide_family("walker2d-vel-long", tmp_path)
     assert decision.gate == "fails" and decision.prior_verdict == NOT_TESTED == decision.adapted_verdict
+    assert any("the premise gate fails (not tested), so no extension" in note for note in decision.notes)
     # Gate holds; k = 0 differences -0.5, +0.1, -0.2, 0 -> interval spans 0 -> inconclusive; k = 5 returns 100 vs
     # 50, 55, 45, 50 -> differences -50, -45, -55, -50: [-55.2, -44.8] entirely below the margin -10 -> worse.
     other = tmp_path / "other"

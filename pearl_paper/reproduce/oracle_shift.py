@@ -9,8 +9,9 @@ the competence check and the velocity records act in the training distribution a
 ``reproduce measure`` finds such records (a task-aware run's ``shift`` whose config records no
 ``task_standardisation``), loads the run's ``model.zip`` (an older one is given its training env's standardisation,
 as in its training; loading it with that env would refuse the zips saved with float64 observation spaces), meta-tests
-it again on the shifted env with the same settings, eval seed and tasks as the run did, and replaces the ``shift``
-section, marked ``remeasured`` with the reason and the CPU. The old numbers stay in git.
+it again on the shifted env of the run's own record (its env kwargs, not the family's current definition) with the
+same settings, eval seed and tasks as the run did, and replaces the ``shift`` section, marked ``remeasured`` with the
+reason and the CPU. The old numbers stay in git.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from sb3_pearl.envs.task_observation import TaskObservation
+from sb3_pearl.envs.task_observation import training_standardisation
 from sb3_pearl.evaluation.held_out import held_out_record
 
 REMEASURED_REASON = (
@@ -54,21 +55,20 @@ def remeasure_oracle_shift(folder: Path, result: dict[str, Any]) -> dict[str, An
 
     experiment = get_experiment(result["experiment"])
     family = experiment.family(result["family"])
-    if family.shift_env_kwargs is None:
-        raise ValueError(f"{folder}: family {family.name} has no shifted test distribution, but the run has a shift record")
-    env_kwargs = dict(result.get("spec", {}).get("family", {}).get("env_kwargs") or family.env_kwargs)
-    train_env = gym.make(family.env_id, **env_kwargs)
-    shift_kwargs = {**env_kwargs, **dict(family.shift_env_kwargs)}
+    # the run's own recorded kwargs, training and shifted, not the family's current definition
+    env_kwargs = dict(result.get("spec", {}).get("family", {}).get("env_kwargs") or {})
+    shift_kwargs = dict(shift["env_kwargs"]) if isinstance((shift := result["shift"]).get("env_kwargs"), dict) else None
+    if shift_kwargs is None:
+        raise ValueError(f"{folder}: the run's shift record holds no env_kwargs to measure it again with")
+    algo = experiment.variant(result["variant"]).algo
+    model = algorithm_class(algo).load(folder / MODEL_FILE, device="cpu")  # type: ignore[attr-defined]
+    if model.task_standardisation is None:  # saved before it was recorded: the training env's, as in its training
+        model.task_standardisation = training_standardisation(family.env_id, env_kwargs)
     shift_env = gym.make(family.env_id, **shift_kwargs)
     try:
-        algo = experiment.variant(result["variant"]).algo
-        model = algorithm_class(algo).load(folder / MODEL_FILE, device="cpu")  # type: ignore[attr-defined]
-        if model.task_standardisation is None:  # saved before it was recorded: the training env's, as in its training
-            model.task_standardisation = TaskObservation(train_env).standardisation
         label = f"{result['experiment']} {result['family']} {result['variant']} seed{result['seed']}"
         settings = result["budget"]["shift_meta_test"]
         record = held_out_record(model, shift_env, settings, result["eval_seed"], shift_kwargs, label)
     finally:
         shift_env.close()
-        train_env.close()
     return {**record, "remeasured": {"reason": REMEASURED_REASON, "cpu": cpu_info()["model"]}}

@@ -183,7 +183,8 @@ def decide_family(
     if set(extended) == set(first) or not set(first) <= set(decision.paired_seeds):
         return decision
     if INCONCLUSIVE not in (decision.prior_verdict, decision.adapted_verdict):
-        decision.notes.append(f"final at {len(first)} seeds: no verdict inconclusive, so no extension")
+        reason = "the premise gate fails (not tested)" if decision.gate == "fails" else "no verdict inconclusive"
+        decision.notes.append(f"final at {len(first)} seeds: {reason}, so no extension")
         return decision
     # the extension rule: a verdict inconclusive on the first seeds -> decided on the extended seeds, final there
     at_first = f"prior {decision.prior_verdict}, adapted {decision.adapted_verdict}"

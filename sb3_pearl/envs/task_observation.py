@@ -46,6 +46,23 @@ def task_features(base: Any, task: Task) -> np.ndarray:
     return np.asarray(features, dtype=np.float64)
 
 
+def training_standardisation(env_id: str, env_kwargs: Mapping[str, Any] | None = None) -> dict[str, list[float]]:
+    """
+    The standardisation of the task vector over a training distribution: what an oracle trained in
+    ``gym.make(env_id, **env_kwargs)`` was told with. For a model saved before it recorded its own:
+    ``Oracle.load(path, task_standardisation=training_standardisation(env_id, training_kwargs))``.
+
+    :param env_id: the family's env id
+    :param env_kwargs: the training env's kwargs (the run's, not a shifted distribution's)
+    :return: ``{"mean": [...], "std": [...]}``
+    """
+    env = gym.make(env_id, **dict(env_kwargs or {}))
+    try:
+        return TaskObservation(env).standardisation
+    finally:
+        env.close()
+
+
 class TaskObservation(gym.ObservationWrapper):
     """
     Append the standardised task vector of the episode's task to each (flat ``Box``) observation.

@@ -86,8 +86,10 @@ class Oracle(FineTune):
 
     :attr:`task_standardisation` is the task vector's standardisation, taken from the training env (``env``) and saved
     with the model; every env the oracle acts in (``set_env``, ``load(env=...)``, :meth:`prepare_env`) is standardised
-    with it. A model saved before it was recorded takes it from the env given to ``load`` (the training distribution,
-    as the run's own env is), or, loaded without one, from each env :meth:`prepare_env` wraps, with a warning.
+    with it. A model saved before it was recorded takes it from the env given to ``load`` (the training distribution),
+    or from ``load(path, task_standardisation=training_standardisation(env_id, training_kwargs))``
+    (:func:`~sb3_pearl.envs.task_observation.training_standardisation`; a zip saved with a float64 observation space
+    refuses ``load(env=...)``); loaded with neither, from each env :meth:`prepare_env` wraps, with a warning.
     """
 
     # Every Oracle zip holds these (load() refuses one without them, e.g. a Fine-Tune zip: its policy sees no task).
@@ -156,9 +158,10 @@ class Oracle(FineTune):
         """
         if self.task_standardisation is None:
             warnings.warn(
-                "Oracle: this model was saved without its task standardisation and loaded without an env; the task "
-                "vector is standardised over the distribution of the env it acts in, which is right only for the "
-                "training distribution (load it with env=<its training env> for a shifted one)",
+                "Oracle: this model was saved without its task standardisation; the task vector is standardised over "
+                "the distribution of the env it acts in, which is right only for the training distribution (for a "
+                "shifted one, load it with task_standardisation=sb3_pearl.envs.task_observation.training_standardisation"
+                "(env_id, training_env_kwargs))",
                 stacklevel=2,
             )
         return with_task_observation(env, self.task_standardisation)

@@ -25,9 +25,11 @@ from stable_baselines3.common.utils import set_random_seed
 from sb3_pearl.common.checks import non_negative_int, positive_int
 from sb3_pearl.common.runtime import has_display
 from sb3_pearl.common.threads import apply_default_num_threads, mark_num_threads_explicit
+from sb3_pearl.envs.task_observation import training_standardisation
 from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
 from sb3_pearl.evaluation.meta_test import ROW_COLUMNS, MetaTestResult
 from sb3_pearl.evaluation.statistics import format_prior_posterior_table
+from sb3_pearl.oracle import Oracle
 from sb3_pearl.zoo.algos import register_algos
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_family, check_model_spaces
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, create_test_env, get_model_path
@@ -242,6 +244,7 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
         except UnsafeConfigError as error:
             raise UsageError(str(error)) from None
     shifted = bool(args.env_kwargs)
+    training_kwargs = dict(env_kwargs)  # before --env-kwargs: the distribution the model was trained in
     if args.env_kwargs:
         env_kwargs.update(args.env_kwargs)
     render = not args.no_render
@@ -272,6 +275,8 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     except ValueError as error:  # a truncated or corrupt zip, or one of another algorithm
         raise UsageError(str(error)) from None
     apply_default_num_threads(model.policy)  # the fastest count for its networks, unless --num-threads chose one
+    if isinstance(model, Oracle) and model.task_standardisation is None:  # saved before it recorded its own
+        model.task_standardisation = training_standardisation(env_id, training_kwargs)
     check_model_spaces(model, env, model_path, env_id)  # a UsageError: saved for another env
     check_model_family(model, env, model_path, env_id)  # a UsageError: trained on another family (no args.yml needed)
     try:
