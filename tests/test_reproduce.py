@@ -175,6 +175,10 @@ def test_measure_brings_older_measures_up_to_date(results: Path, tmp_path: Path)
     assert upgraded == current  # the measures of the run's own end, from its model.zip
     assert "0 run(s) measured" in reproduce("measure", "--results-dir", str(tmp_path)).stdout
     assert "1 run(s) measured" in reproduce("measure", "--force", "--results-dir", str(tmp_path)).stdout
+    # a run whose model.zip is gone is named and skipped (not a traceback that stops the other runs' measurement)
+    (folder / "model.zip").unlink()
+    out = reproduce("measure", "--force", "--results-dir", str(tmp_path)).stdout
+    assert f"skip {path}" in out and "model.zip" in out and "0 run(s) measured" in out
 
 
 def test_report_builds_tables_and_figures(results: Path, tmp_path: Path) -> None:

@@ -175,7 +175,7 @@ def measure_results(
                     echo(f"measured {path}")
         except RunLockedError as error:
             echo(f"skip {path}: {error}")
-        except ValueError as error:  # a copy or a moved file: named, and the other runs are still measured
+        except (ValueError, OSError) as error:  # a copy, a moved or missing model.zip: named, the other runs measured
             echo(f"skip {path}: {error}")
     return written
 
