@@ -453,3 +453,17 @@ def test_a_calibration_family_is_reported_without_the_learnability_rule(tmp_path
     text = "\n".join(competence_section(tmp_path))
     assert "**not judged: a calibration of the learner (one target), read its error and falls**" in text
     assert "| Oracle (1) | 0.600 [0.600, 0.600] |" in text and "not learnable" not in text
+
+
+def test_given_standardisation_draws_no_reference_tasks(monkeypatch) -> None:
+    """With the training standardisation given, the wrapper neither draws the env's own reference tasks nor uses them."""
+    training = TaskObservation(gym.make("Walker2dVelMeta-v0")).standardisation
+    shifted = gym.make("Walker2dVelMeta-v0", velocity_low=2.0, velocity_high=3.0)
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("sample_tasks called although the standardisation was given")
+
+    monkeypatch.setattr(type(shifted.unwrapped), "sample_tasks", refuse)
+    wrapped = TaskObservation(shifted, training)
+    assert wrapped.task_dim == 1
+    assert wrapped.standardisation == training
