@@ -221,6 +221,25 @@ def test_a_learning_curve_changes_nothing_else_and_resumes(
     assert {row["competent"] for row in rows} <= {0.0, 1.0}  # the family's competence check at every point
 
 
+def test_a_run_stopped_by_signal_adds_no_curve_point_at_its_stop(with_curve: None, tmp_path: Path) -> None:
+    """Guards against: a PEARL run stopped at an env step returned from learn() normally, and the curve's end point
+    was measured there (300: off the 120-step grid, on a model inside its iteration), then kept by the resumed run."""
+    run_one(*RUN, tmp_path / "whole", verbose=0)
+    whole = read_curve(tmp_path / "whole" / FOLDER / CURVE_FILE)
+    stop = StopOnSignalCallback()
+
+    def ask(point: str, n: int) -> None:  # the signal handler's request, at env step 300 (inside iteration 3)
+        stop.requested = stop.requested or (point == "step" and n == 300)
+
+    with pytest.raises(RunStopped, match=r"at 300 env steps"):
+        run_one(*RUN, tmp_path / "cut", verbose=0, interrupt=ask, stop=stop)
+    assert [row["env_steps"] for row in read_curve(tmp_path / "cut" / FOLDER / CURVE_FILE)] == [120, 240]
+    run_one(*RUN, tmp_path / "cut", verbose=0)
+    resumed = read_curve(tmp_path / "cut" / FOLDER / CURVE_FILE)
+    assert [row["env_steps"] for row in resumed] == [120, 240, 360, 400]
+    assert _without_wall_time(resumed) == _without_wall_time(whole)
+
+
 def _without_wall_time(rows: list[dict[str, float]]) -> list[dict[str, float | None]]:
     return [{k: None if math.isnan(v) else v for k, v in row.items() if k != "wall_s"} for row in rows]
 

@@ -34,6 +34,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from pearl_paper.experiments.spec import Criterion
 from pearl_paper.reproduce.competence import evaluate_competence
 from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.common.callbacks import StopOnSignalCallback
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.evaluation.held_out import run_meta_test
 
@@ -134,6 +135,8 @@ class LearningCurve(BaseCallback):
     :param eval_seed: the experiment's eval seed
     :param resume_at: the env steps of the checkpoint a resumed run starts from (its later rows are dropped)
     :param competence: the family's competence check, evaluated at every point too (:func:`evaluate_point`)
+    :param stop: the run's stop callback: training stopped by it ends without the end point (the resumed run's grid
+        goes on from the checkpoint; a point there would be off the grid, or on it for a partly trained iteration)
     """
 
     def __init__(
@@ -145,9 +148,11 @@ class LearningCurve(BaseCallback):
         eval_seed: int,
         resume_at: int = 0,
         competence: tuple[Sequence[Criterion], dict[str, Any], tuple[str, ...]] | None = None,
+        stop: StopOnSignalCallback | None = None,
     ) -> None:
         super().__init__()
         self.path = path
+        self.stop = stop
         self.env = env
         self.tasks = list(tasks)[: settings["n_tasks"]]
         self.settings = settings
@@ -175,7 +180,8 @@ class LearningCurve(BaseCallback):
             self.next_at = (steps // self.settings["every"] + 1) * self.settings["every"]
 
     def _on_training_end(self) -> None:
-        self._point()
+        if self.stop is None or not self.stop.stopped:
+            self._point()
 
 
 def curve_value(row: dict[str, Any], key: str) -> float:

@@ -292,11 +292,12 @@ class RunState:
             )
         return model
 
-    def learning_curve(self, model: Any) -> tuple[LearningCurve, gym.Env]:
+    def learning_curve(self, model: Any, stop: StopOnSignalCallback | None) -> tuple[LearningCurve, gym.Env]:
         """
         The learning curve on the held-out tasks (docs/reproduce.md, "Learning curves"), with its env.
 
         :param model: the model
+        :param stop: the run's stop callback (training it stops ends without the curve's end point)
         :return: the callback and its env (to close)
         """
         curve = self.budget["curve"]
@@ -305,7 +306,14 @@ class RunState:
         family, budget = self.family, self.budget
         competence = (family.competence, budget["competence_meta_test"], family.trace_keys()) if family.competence else None
         callback = LearningCurve(
-            self.folder / CURVE_FILE, curve_env, curve_tasks, curve, self.experiment.eval_seed, self.resumed_steps, competence
+            self.folder / CURVE_FILE,
+            curve_env,
+            curve_tasks,
+            curve,
+            self.experiment.eval_seed,
+            self.resumed_steps,
+            competence,
+            stop,
         )
         return callback, curve_env
 
@@ -332,7 +340,7 @@ class RunState:
         ]
         curve_env = None
         if "curve" in self.budget:
-            curve, curve_env = self.learning_curve(model)
+            curve, curve_env = self.learning_curve(model, stop)
             callbacks.append(curve)
         at_resume = (int(model.num_timesteps), int(getattr(model, "_n_updates", 0)))
         pending = int(getattr(model, "_pending_gradient_steps", 0))  # a stop's gradient steps, trained first
