@@ -6,6 +6,7 @@ tests/test_reproduce_resume.py."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -26,7 +27,7 @@ import tests.faulty_envs as faulty_envs
 from sb3_pearl import PEARL, PEARLPlus
 from sb3_pearl.common.callbacks import StopOnSignalCallback, gradient_step_event
 from sb3_pearl.evaluation import progress
-from sb3_pearl.evaluation.callbacks import ResumableCheckpointCallback, checkpoint_replay_buffer_path
+from sb3_pearl.evaluation.callbacks import MetaTestCallback, ResumableCheckpointCallback, checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.progress import TrainingProgressCallback
 from sb3_pearl.zoo import MetaExperimentManager, train
 from sb3_pearl.zoo.flags import parse_project_flags
@@ -132,6 +133,22 @@ def test_periodic_checkpoints_inside_gradient_steps_resume_bit_identically(
     assert resumed._n_updates == unsplit._n_updates and _same(unsplit, resumed)
 
 
+def test_a_periodic_checkpoints_zip_is_written_after_its_buffer(
+    tmp_path: Path, tiny_kwargs: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Guards against: the zip written first, so a kill during the (slow) buffer write left a newest checkpoint with no
+    buffer, which --resume then found and refused."""
+    model = _make(tiny_kwargs)
+
+    def killed(*args: Any, **kwargs: Any) -> None:
+        raise KeyboardInterrupt("killed while the model is written")
+
+    monkeypatch.setattr(model, "save", killed)
+    with pytest.raises(KeyboardInterrupt):
+        model.learn(TOTAL, callback=ResumableCheckpointCallback(0, str(tmp_path), "checkpoint", every_s=1e-9))
+    assert list(tmp_path.glob("checkpoint_replay_buffer_*.pkl")) and not list(tmp_path.glob("checkpoint_*.zip"))
+
+
 def test_every_callback_hears_the_gradient_step_and_a_signal_stops_there() -> None:
     heard: list[str] = []
 
@@ -197,6 +214,15 @@ def test_checkpoint_minutes_flag() -> None:
         ResumableCheckpointCallback(0, "x", every_s=0.0)
 
 
+def test_the_projects_flags_take_the_equals_form() -> None:
+    """Guards against: --budget=cpu, --checkpoint-minutes=5 failing with 'unrecognized arguments' where -n=, --seed= work."""
+    command = ["--algo", "pearl", "--env", "HalfCheetahVelMeta-v0", "--budget=cpu", "--checkpoint-minutes=5"]
+    flags = parse_project_flags(command)
+    assert flags.budget == "cpu" and flags.checkpoint_minutes == 5.0
+    assert not any(arg.startswith(("--budget", "--checkpoint-minutes")) for arg in flags.zoo_args)
+    assert flags.command[-4:] == ["--budget", "cpu", "--checkpoint-minutes", "5"]  # the resume command is built from it
+
+
 def test_an_interrupted_harness_run_says_whether_a_checkpoint_exists(tmp_path: Path) -> None:
     """A child of `reproduce run` stopped before its first checkpoint promised a resume from a checkpoint that did not
     exist; it now says which of the two the same command will do."""
@@ -229,26 +255,40 @@ def test_the_demo_names_an_empty_or_foreign_remeasured_record(tmp_path: Path) ->
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def start_train(folder: Path, env_id: str, *extra: str) -> subprocess.Popen[str]:
+def start_train(folder: Path, env_id: str, *extra: str, new_session: bool = False) -> subprocess.Popen[str]:
     conf = folder / "conf.yml"
     conf.write_text(yaml.safe_dump({env_id: TINY_ZOO}))
     command = [sys.executable, str(ROOT / "train.py"), "--algo", "pearlplus", "--env", env_id, "-f", str(folder / "logs")]
     command += ["-conf", str(conf), "--seed", "1", "--num-threads", "1", "--gym-packages", "tests.faulty_envs", *extra]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "MPLBACKEND": "Agg"}
-    return subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        command,
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=new_session,  # its own process group, as a terminal's foreground job
+    )
 
 
-def test_sigterm_saves_the_model_and_says_where(tmp_path: Path) -> None:
-    proc = start_train(tmp_path, ENV_ID)
+def _until_training(proc: subprocess.Popen[str]) -> list[str]:
+    """The output up to the logger's first iteration (training has started)."""
     assert proc.stdout is not None
     output = []
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:  # training has started once the logger printed its first iteration
+    while time.monotonic() < deadline:
         line = proc.stdout.readline()
         output.append(line)
         if "n_updates" in line or not line:
             break
     assert any("n_updates" in line for line in output), "".join(output)
+    return output
+
+
+def test_sigterm_saves_the_model_and_says_where(tmp_path: Path) -> None:
+    proc = start_train(tmp_path, ENV_ID)
+    output = _until_training(proc)
     proc.send_signal(signal.SIGTERM)
     rest, _ = proc.communicate(timeout=60)
     text = "".join(output) + rest
@@ -257,6 +297,43 @@ def test_sigterm_saves_the_model_and_says_where(tmp_path: Path) -> None:
     assert "Received SIGTERM: stopping training where it resumes exactly" in text
     assert f"the model is saved to {model_path} with its replay buffer" in text
     assert PEARLPlus.load(model_path).num_timesteps > 0
+
+
+def test_ctrl_c_with_subprocess_envs_stops_cleanly(tmp_path: Path) -> None:
+    """Guards against: Ctrl-C reached the SubprocVecEnv workers too (the terminal signals its whole foreground process
+    group), they died, and the stop ended in BrokenPipeError with no replay buffer and no interrupted.json."""
+    proc = start_train(tmp_path, ENV_ID, "--vec-env", "subproc", new_session=True)
+    output = _until_training(proc)
+    os.killpg(proc.pid, signal.SIGINT)
+    rest, _ = proc.communicate(timeout=90)
+    text = "".join(output) + rest
+    run = tmp_path / "logs" / "pearlplus" / f"{ENV_ID}_1"
+    assert proc.returncode == 128 + signal.SIGINT, text[-3000:]
+    assert "Traceback" not in text and "Received SIGINT: stopping training where it resumes exactly" in text
+    record = json.loads((run / "interrupted.json").read_text())
+    assert record["during"] == "training" and record["exact_resume"] and Path(record["replay_buffer"]).is_file()
+
+
+def test_shielded_subprocess_workers_outlive_a_stop_signal() -> None:
+    """The workers ignore SIGINT and SIGTERM (the main process stops them); SB3's own worker ends on SIGINT."""
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    from sb3_pearl.zoo.interruptions import SignalShieldedSubprocVecEnv
+
+    for vec_env_class, survives in ((SignalShieldedSubprocVecEnv, True), (SubprocVecEnv, False)):
+        vec_env = vec_env_class([lambda: gym.make("Pendulum-v1")])
+        vec_env.reset()
+        worker = vec_env.processes[0]
+        os.kill(worker.pid, signal.SIGINT)
+        worker.join(timeout=2.0)
+        assert worker.is_alive() is survives, vec_env_class.__name__
+        if survives:
+            os.kill(worker.pid, signal.SIGTERM)
+            worker.join(timeout=1.0)
+            assert worker.is_alive()
+            vec_env.step(np.zeros((1, 1), dtype=np.float32))
+            vec_env.close()
+            assert not worker.is_alive()
 
 
 def test_exception_during_training_saves_the_model_and_reraises(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -317,19 +394,89 @@ def test_a_signal_cuts_the_run_saves_what_the_resume_needs_and_the_resume_is_exa
         assert all(th.equal(a, b) for a, b in zip(full, again, strict=True)), name
 
 
-def test_a_signal_during_the_final_meta_test_keeps_the_model_and_writes_no_meta_test(tmp_path: Path) -> None:
-    """docs/reliability.md: a signal during the final meta-test leaves no meta_test.* (no partial numbers), the trained
-    model saved, interrupted.json saying when, and the exit code 128 + signal."""
-    faulty_envs.send_signals({420 + 10: signal.SIGTERM})  # training takes env steps 1-420; the meta-test follows
+def test_a_resume_with_other_hyperparameters_is_refused(tmp_path: Path) -> None:
+    """Guards against: --resume passed the YAML / -params values of the resuming command to load(), so an edited entry
+    silently changed a run documented as continuing bit for bit; the budget (-n) may change."""
+    faulty_envs.send_signals({200: signal.SIGTERM})
+    logs = tmp_path / "logs"
+    model = logs / "pearlplus" / f"{SIGNAL_ENV}_1" / f"{SIGNAL_ENV}.zip"
+    assert _train_signal_env(tmp_path, logs, check=False).returncode == 128 + signal.SIGTERM
+    faulty_envs.send_signals({})
+    refused = _train_signal_env(tmp_path, logs, "--resume", str(model), "-params", "batch_size:8", check=False)
+    assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0, refused.stderr[-2000:]
+    assert f"--resume {model}: the hyperparameters differ from the run's (" in refused.stderr
+    assert f"batch_size: {TINY_ZOO['batch_size']!r} in the run, 8 now" in refused.stderr
+    resumed = _train_signal_env(tmp_path, logs, "--resume", str(model), "-n", "480")  # a longer budget: allowed
+    assert "Resuming at 200 timesteps: 280 to go" in resumed.stdout
+
+
+def test_a_resumed_run_evaluates_and_checkpoints_on_the_uninterrupted_runs_grid(tmp_path: Path) -> None:
+    """Guards against: the resumed run's callbacks counted calls from 0, so a run cut at 200 evaluated at 320 (200 +
+    120) where the uninterrupted run evaluates at 240 and 360; --save-freq checkpoints likewise."""
+    faulty_envs.send_signals({200: signal.SIGTERM})
+    logs = tmp_path / "logs"
+    every = ["--eval-freq", "120", "--save-freq", "120"]
+    assert _train_signal_env(tmp_path, logs, *every, check=False).returncode == 128 + signal.SIGTERM
+    cut = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
+    faulty_envs.send_signals({})
+    _train_signal_env(tmp_path, logs, *every, "--resume", str(cut / f"{SIGNAL_ENV}.zip"))
+    resumed = logs / "pearlplus" / f"{SIGNAL_ENV}_2"
+    with open(resumed / "meta_test_history.csv", newline="") as file:
+        evaluated = sorted({int(row["timesteps"]) for row in csv.DictReader(file)})
+    assert evaluated == [240, 360]
+
+
+def test_call_counting_callbacks_start_at_the_models_env_steps(tiny_kwargs: dict[str, Any], tmp_path: Path) -> None:
+    """A resumed model's callbacks count on from its env steps (per VecEnv step), a new model's from 0."""
+    model = _make(tiny_kwargs)
+    checkpoints = ResumableCheckpointCallback(120, str(tmp_path), "rl_model")
+    checkpoints.init_callback(model)
+    assert checkpoints.n_calls == 0
+    model.num_timesteps = 250  # as loaded from a checkpoint at 250 env steps
+    for callback in (ResumableCheckpointCallback(120, str(tmp_path), "rl_model"), MetaTestCallback(gym.make(NOISY_ENV), 120)):
+        callback.init_callback(model)
+        assert callback.n_calls == 250, type(callback).__name__
+
+
+@pytest.mark.parametrize(
+    ("during", "said"),
+    [
+        ("final meta-test", ["Received SIGTERM: stopping the final meta-test (the model is saved)"]),
+        # guards against: a signal during the final save only said 'finishing the save first', the whole final
+        # meta-test then ran, and interrupted.json said it was not written
+        (
+            "final save",
+            ["Received SIGTERM: finishing the save first", "SIGTERM came during the save: the final meta-test is skipped"],
+        ),
+    ],
+)
+def test_a_signal_after_training_keeps_the_model_and_writes_no_meta_test(
+    during: str, said: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """docs/reliability.md: a signal during the final meta-test (or the final save before it) leaves no meta_test.* (no
+    partial numbers), the trained model saved, interrupted.json saying when, and the exit code 128 + signal."""
+    if during == "final meta-test":
+        faulty_envs.send_signals({420 + 10: signal.SIGTERM})  # training takes env steps 1-420; the meta-test follows
+    else:
+        from rl_zoo3.exp_manager import ExperimentManager
+
+        save = ExperimentManager.save_trained_model
+
+        def save_then_signalled(self: Any, model: Any) -> None:
+            os.kill(os.getpid(), signal.SIGTERM)  # arrives while the model is being saved
+            save(self, model)
+
+        monkeypatch.setattr(ExperimentManager, "save_trained_model", save_then_signalled)
+        faulty_envs.send_signals({})
     logs = tmp_path / "logs"
     run = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
     cut = _train_signal_env(tmp_path, logs, check=False)
     assert cut.returncode == 128 + signal.SIGTERM, cut.stdout[-2000:] + cut.stderr[-2000:]
-    assert "Received SIGTERM: stopping the final meta-test (the model is saved)" in cut.stdout
-    assert "Stopped by SIGTERM during the final meta-test" in cut.stdout
+    for line in [*said, f"Stopped by SIGTERM during the {during}: training is complete"]:
+        assert line in cut.stdout
     record = json.loads((run / "interrupted.json").read_text())
-    assert record["signal"] == "SIGTERM" and record["during"] == "final meta-test" and record["num_timesteps"] == 420
-    assert not any(run.glob("meta_test.*"))
+    assert record["signal"] == "SIGTERM" and record["during"] == during and record["num_timesteps"] == 420
+    assert record["resume"] is None and not any(run.glob("meta_test.*"))
     assert PEARLPlus.load(run / f"{SIGNAL_ENV}.zip").num_timesteps == 420
 
 

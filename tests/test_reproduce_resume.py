@@ -240,6 +240,52 @@ def test_a_run_stopped_by_signal_adds_no_curve_point_at_its_stop(with_curve: Non
     assert _without_wall_time(resumed) == _without_wall_time(whole)
 
 
+def test_a_stop_asked_after_the_last_stop_point_stops_before_the_evaluations(
+    with_curve: None, uninterrupted: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Guards against: a SIGTERM during the curve's end point (training over, no stop point left) was heard and then
+    ignored: the child went on into the evaluations until the parent killed it."""
+    from pearl_paper.reproduce import curve as curve_module
+
+    stop = StopOnSignalCallback()
+    end_point = curve_module.LearningCurve._on_training_end
+
+    def asked_during(self: Any) -> None:
+        stop.requested = True
+        end_point(self)
+
+    monkeypatch.setattr(curve_module.LearningCurve, "_on_training_end", asked_during)
+    with pytest.raises(RunStopped, match=r"^at the end of training \(400 env steps\), before the evaluations$"):
+        run_one(*RUN, tmp_path, verbose=0, stop=stop)
+    state = RunCheckpoint(tmp_path / FOLDER).read_state()
+    assert state is not None and state["phase"] == "evaluate" and not (tmp_path / FOLDER / RESULT_FILE).exists()
+    monkeypatch.setattr(curve_module.LearningCurve, "_on_training_end", end_point)
+    assert _metrics(run_one(*RUN, tmp_path, verbose=0)) == _metrics(uninterrupted)
+
+
+def test_a_checkpoint_whose_model_is_missing_is_refused_not_restarted(tmp_path: Path) -> None:
+    """Guards against: a state.json naming a missing model zip read as 'no checkpoint', and the run restarted from zero
+    over its progress.csv and buffer (a manual copy of the checkpoint that forgot the zip)."""
+    from pearl_paper.experiments import get_experiment
+    from pearl_paper.reproduce.status import run_status
+
+    with pytest.raises(Killed):
+        run_one(*RUN, tmp_path, verbose=0, checkpoint_interval_s=0.0, interrupt=_kill_at("step", 300))
+    folder = tmp_path / FOLDER
+    checkpoint = RunCheckpoint(folder)
+    state = checkpoint.read_state()
+    assert state is not None
+    model = checkpoint.folder / state["files"]["model"]
+    model.unlink()
+    progress = (folder / "progress.csv").read_bytes()
+    assert checkpoint.damage(state) == f"checkpoint damaged: {model} is missing"
+    with pytest.raises(ValueError, match=r"checkpoint damaged: .* is missing: delete .*--force"):
+        run_one(*RUN, tmp_path, verbose=0)
+    assert (folder / "progress.csv").read_bytes() == progress and checkpoint.read_state() == state  # nothing touched
+    (row,) = run_status(get_experiment("safe-point"), "smoke", [0], tmp_path, ["safe-point"], ["alpha-0.1"])
+    assert row.status == "damaged" and row.progress == f"checkpoint damaged: {model} is missing"
+
+
 def _without_wall_time(rows: list[dict[str, float]]) -> list[dict[str, float | None]]:
     return [{k: None if math.isnan(v) else v for k, v in row.items() if k != "wall_s"} for row in rows]
 

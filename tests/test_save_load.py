@@ -600,13 +600,25 @@ def test_load_replay_buffer_of_a_model_zip_says_what_to_load(tmp_path: Path, tin
 # Failed saves and resumes: one line naming the file or the flag
 # ----------------------------------------------------------------------------------------------
 def test_a_resume_without_its_replay_buffer_is_refused_in_one_line(tmp_path: Path) -> None:
-    model = tmp_path / "model.zip"
+    model = tmp_path / f"{ENV_ID}.zip"  # the run's model: its buffer is the folder's replay_buffer.pkl
     model.write_bytes(b"")  # the check comes before anything reads it
-    refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "--resume", str(model), check=False)
+    refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, f"--resume={model}", check=False)
     assert refused.returncode == 2
     assert refused.stderr.strip().count("\n") == 0
     assert f"--resume {model}: no replay buffer beside it ({tmp_path / 'replay_buffer.pkl'})" in refused.stderr
     assert "add --resume-without-buffer to go on anyway" in refused.stderr
+
+
+def test_a_resume_of_a_model_the_folders_buffer_does_not_belong_to_is_refused(tmp_path: Path) -> None:
+    """Guards against: --resume best_model.zip loaded the folder's replay_buffer.pkl, the buffer of the run's last
+    step, into an earlier model."""
+    model = tmp_path / "best_model.zip"
+    model.write_bytes(b"")
+    (tmp_path / "replay_buffer.pkl").write_bytes(b"x")
+    refused = run_in_process(train, "--algo", "pearlplus", "--env", ENV_ID, "--resume", str(model), check=False)
+    assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0
+    assert f"--resume {model}: no replay buffer belongs to this model" in refused.stderr
+    assert "the folder's replay_buffer.pkl is of another step" in refused.stderr
 
 
 def test_save_to_a_path_it_cannot_write_names_the_destination(

@@ -69,7 +69,10 @@ class RunCheckpoint:
         self.folder = self.run_folder / CHECKPOINT_DIR
 
     def read_state(self) -> dict[str, Any] | None:
-        """The saved state, None when there is no usable checkpoint."""
+        """
+        The saved state, None when no checkpoint was written. A state whose files are missing or damaged is returned:
+        :meth:`damage` says what is wrong, and the resume refuses it rather than restarting the run over it.
+        """
         path = self.folder / STATE_FILE
         if not path.is_file():
             return None
@@ -77,9 +80,8 @@ class RunCheckpoint:
             state = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as error:
             raise ValueError(f"{path} is unreadable ({error}): delete {self.folder} to restart the run from zero") from error
-        model = (state.get("files") or {}).get("model")
-        if not model or not (self.folder / model).is_file():
-            return None
+        if not isinstance(state, dict):
+            raise ValueError(f"{path} holds no checkpoint state: delete {self.folder} to restart the run from zero")
         return state
 
     def write_state(self, state: dict[str, Any]) -> None:
@@ -142,7 +144,7 @@ class RunCheckpoint:
 
     def damage(self, state: dict[str, Any]) -> str | None:
         """
-        Why the checkpoint cannot be resumed although its state names it, or None: its model zip is cut or corrupt
+        Why the checkpoint cannot be resumed although its state names it, or None: its model zip is missing, cut or corrupt
         (:func:`~sb3_pearl.common.persistence.read_model_data`: the zip's directory, every entry's CRC, the ``data``
         entry), or a replay-buffer file it names is missing or empty.
 
@@ -150,6 +152,10 @@ class RunCheckpoint:
         :return: ``"checkpoint damaged: <what>"``, or None
         """
         files = state.get("files") or {}
+        if not files.get("model"):
+            return f"checkpoint damaged: {self.folder / STATE_FILE} names no model"
+        if not (self.folder / files["model"]).is_file():
+            return f"checkpoint damaged: {self.folder / files['model']} is missing"
         try:
             read_model_data(self.folder / files["model"])
         except (DamagedModelError, OSError) as error:

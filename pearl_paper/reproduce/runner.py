@@ -361,6 +361,8 @@ class RunState:
         model.save(self.folder / MODEL_FILE)
         written = self.checkpoint.save_model(model, progress)  # with the buffers the diagnostics read
         self.save_state("evaluate", model, written)
+        if stop is not None and stop.requested:  # asked after the last stop point (e.g. during the curve's end point)
+            raise RunStopped(f"at the end of training ({int(model.num_timesteps):,} env steps), before the evaluations")
 
     def phase(self, name: str, model: Any, compute: Callable[[], Any]) -> Any:
         """

@@ -9,6 +9,7 @@ import time
 from typing import Any
 
 import gymnasium as gym
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -79,6 +80,7 @@ class MetaTestCallback(BaseCallback):
 
     def _init_callback(self) -> None:
         check_adaptive(self.model)
+        self.n_calls = continued_calls(self.model)
         if self.tasks is None:
             self.tasks = model_test_tasks(self.model, self.eval_env, self.n_tasks, self.eval_seed, "MetaTestCallback")
         for folder in (self.best_model_save_path, self.log_path):
@@ -256,6 +258,10 @@ class ResumableCheckpointCallback(CheckpointCallback):
         self._previous: list[str] = []
         self.saved: list[list[str]] = []  # the files of every checkpoint written
 
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        self.n_calls = continued_calls(self.model)
+
     def _on_step(self) -> bool:
         if self.by_calls and self.n_calls % self.save_freq == 0:
             self._due = True
@@ -282,12 +288,13 @@ class ResumableCheckpointCallback(CheckpointCallback):
         if self._previous and model_path in self._previous:
             self._last_save = time.monotonic()
             return  # nothing new since the last checkpoint (same step count, same gradient steps): keep it
-        self.model.save(model_path)
-        paths = [model_path]
+        paths = []
         if getattr(self.model, "replay_buffer", None) is not None and hasattr(self.model, "save_replay_buffer"):
             buffer_path = self._checkpoint_path("replay_buffer_", extension="pkl")
             self.model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
             paths.append(buffer_path)
+        self.model.save(model_path)  # last: a checkpoint's zip on disk means its buffer is too (a kill between them)
+        paths.insert(0, model_path)
         if self.keep_last:
             for old in self._previous:
                 if old not in paths and os.path.exists(old):
@@ -305,6 +312,18 @@ class ResumableCheckpointCallback(CheckpointCallback):
         return os.path.join(self.save_path, f"{self.name_prefix}_{checkpoint_type}{steps}.{extension}")
 
 
+def continued_calls(model: BaseAlgorithm) -> int:
+    """
+    The ``on_step`` calls an uninterrupted run would have made by the model's env steps (one per VecEnv step): where a
+    callback counting calls starts, so that a resumed run evaluates and checkpoints on the uninterrupted run's grid
+    (every ``eval_freq`` / ``save_freq`` calls from the start, not from the resume).
+
+    :param model: the model training starts or resumes
+    :return: ``num_timesteps // n_envs`` (0 for a new run)
+    """
+    return int(model.num_timesteps) // max(int(model.n_envs), 1)
+
+
 def checkpoint_replay_buffer_path(model_path: str) -> str | None:
     """
     The replay buffer saved with a checkpoint: ``<prefix>_replay_buffer_<steps>_steps[_u<updates>].pkl`` for
@@ -320,4 +339,10 @@ def checkpoint_replay_buffer_path(model_path: str) -> str | None:
     return os.path.join(folder, f"{match['prefix']}_replay_buffer_{match['steps']}_steps{match['updates'] or ''}.pkl")
 
 
-__all__ = ["MetaTestCallback", "MetaTestTrialCallback", "ResumableCheckpointCallback", "checkpoint_replay_buffer_path"]
+__all__ = [
+    "MetaTestCallback",
+    "MetaTestTrialCallback",
+    "ResumableCheckpointCallback",
+    "checkpoint_replay_buffer_path",
+    "continued_calls",
+]

@@ -56,13 +56,16 @@ from sb3_pearl.evaluation.held_out import check_meta_test_settings, model_test_t
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.algos import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.budget import budget_hyperparams
-from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags
+from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags, resume_buffer_path
 from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager, SetupInterrupted
 from sb3_pearl.zoo.meta_testing import SHORT_RUN_FRACTION, ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces, check_saved_model_family
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, get_latest_run_id, run_zoo_train
-from sb3_pearl.zoo.safe_config import parse_dict_string
+from sb3_pearl.zoo.safe_config import load_run_yaml, parse_dict_string
 from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, exit_on_usage_error
+
+# What a --resume may set otherwise than the run did: the env steps to run up to, the evaluation settings.
+RESUME_MAY_CHANGE = frozenset({"n_timesteps", "meta_test"})
 
 # Keys the zoo reads itself (rl_zoo3 ExperimentManager._preprocess_*), never constructor kwargs.
 ZOO_SPECIAL_KEYS = frozenset(
@@ -127,6 +130,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             kwargs["config"] = default_config(algo)  # else rl_zoo3's own file (its algorithms)
         self.resume, self.budget, self.command = resume, budget, list(command)
         self.checkpoint_minutes, self.resume_without_buffer = checkpoint_minutes, resume_without_buffer
+        self.run_hyperparams: dict[str, Any] = {}
         super().__init__(args, algo, env_id, log_folder, *posargs, **kwargs)
         self.meta_test_kwargs = dict(ZOO_META_TEST_DEFAULTS)
         self.adaptive = has_adaptation_api(ALGOS[algo])
@@ -150,6 +154,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             saved_hyperparams = OrderedDict((key, hyperparams[key]) for key in sorted(hyperparams))
             print(f"meta_test (the entry's, with -params' keys over it): {hyperparams['meta_test']}")
         self.check_hyperparameters(hyperparams)
+        self.run_hyperparams = dict(saved_hyperparams)  # what config.yml records (a --resume compares them)
         return hyperparams, saved_hyperparams
 
     def _read_entry(self) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -302,8 +307,38 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         finally:
             env.close()
 
+    def _check_resume_hyperparams(self) -> None:
+        """
+        ``--resume`` continues a run as it was: refuse hyperparameters (YAML entry, ``--budget``, ``-params``) that
+        differ from those in the run's ``<EnvId>/config.yml``, except :data:`RESUME_MAY_CHANGE` (the budget to run up
+        to, the evaluation settings). A model zip without its run's config is resumed with the settings given.
+        """
+        config = os.path.join(os.path.dirname(self.trained_agent), self.env_name.gym_id, "config.yml")
+        if not os.path.isfile(config):
+            print(f"Note: no {config} beside the checkpoint: its run's hyperparameters cannot be checked against these")
+            return
+        saved, current = dict(load_run_yaml(config) or {}), self.run_hyperparams
+        missing = object()
+
+        def shown(value: Any) -> str:
+            return "not set" if value is missing else repr(value)
+
+        changed = [
+            f"{key}: {shown(saved.get(key, missing))} in the run, {shown(current.get(key, missing))} now"
+            for key in sorted(saved.keys() | current.keys())
+            if key not in RESUME_MAY_CHANGE and saved.get(key, missing) != current.get(key, missing)
+        ]
+        if changed:
+            raise UsageError(
+                f"--resume {self.trained_agent}: the hyperparameters differ from the run's ({config}): "
+                f"{'; '.join(changed)}. A resume continues the run as it was: give the run's settings (its YAML entry, "
+                "--budget and -params), or train a new run with -i to continue from the model with new ones"
+            )
+
     def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: VecEnv) -> BaseAlgorithm:
         check_model_env(self.trained_agent, self.env_name.gym_id)
+        if self.resume:
+            self._check_resume_hyperparams()
         flag = "--resume" if self.resume else "-i"  # another family: the fix is --env, not the constructor's advice
         check_saved_model_family(self.trained_agent, env, self.env_name.gym_id, model_label=f"{flag} {self.trained_agent}")
         algo_class = ALGOS[self.algo]
@@ -311,7 +346,11 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         if load_buffer is None:  # on-policy (MAML): no buffer to load
             return super()._load_pretrained_agent(hyperparams, env)
 
+        own_buffer = resume_buffer_path(self.trained_agent, self.env_name.gym_id)
+
         def checked_load(model: BaseAlgorithm, path: str, *args: Any, **kwargs: Any) -> None:
+            if self.resume and os.path.abspath(path) != os.path.abspath(own_buffer or ""):
+                return  # the folder's replay_buffer.pkl belongs to its <EnvId>.zip, not to this checkpoint
             self._load_replay_buffer(load_buffer, model, path, *args, **kwargs)
 
         with mock.patch.object(algo_class, "load_replay_buffer", checked_load):  # rl_zoo3's <folder>/replay_buffer.pkl

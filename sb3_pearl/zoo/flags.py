@@ -32,6 +32,22 @@ sb3-pearl flags (docs/cli.md):
                         iteration start (default 10; 0: off): a kill loses at most M minutes"""
 
 DEFAULT_CHECKPOINT_MINUTES = 10.0
+OWN_VALUE_FLAGS = ("--resume", "--budget", "--checkpoint-minutes")  # the project's flags that take a value
+
+
+def split_own_flags(args: list[str]) -> list[str]:
+    """
+    The command line with the project's own ``--flag=value`` written ``--flag value``, as rl_zoo3's argparse takes
+    both forms of its flags.
+
+    :param args: the command line
+    :return: a new list
+    """
+    split: list[str] = []
+    for arg in args:
+        name, equals, value = arg.partition("=")
+        split += [name, value] if equals and name in OWN_VALUE_FLAGS else [arg]
+    return split
 
 
 class ProjectFlags(NamedTuple):
@@ -52,7 +68,8 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
     :param args: the command line (not changed)
     :return: rl_zoo3's arguments and the project's settings
     """
-    command, args = list(args), list(args)
+    command = split_own_flags(args)
+    args = list(command)
     resume, budget = False, None
     args = usage.check_n_timesteps(args)
     usage.check_seed(args)
@@ -91,7 +108,7 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
             budget_hyperparams(known.budget, known.env, known.algo)  # an unknown preset or entry: the error now
         budget = known.budget
     if resume and not without_buffer:
-        check_resume_buffer(args[args.index("--trained-agent") + 1], known.algo)
+        check_resume_buffer(args[args.index("--trained-agent") + 1], known.algo, known.env)
     checkpoint_minutes = DEFAULT_CHECKPOINT_MINUTES
     if "--checkpoint-minutes" in args:
         index = args.index("--checkpoint-minutes")
@@ -106,26 +123,61 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
     return ProjectFlags(args, command, resume, budget, checkpoint_minutes, without_buffer)
 
 
-def check_resume_buffer(checkpoint: str, algo: str | None) -> None:
+def resume_buffer_path(checkpoint: str, env_id: str | None) -> str | None:
     """
-    Refuse ``--resume`` of an off-policy model without its replay buffer (the run would restart from an empty buffer
-    and no longer continue the interrupted one), unless ``--resume-without-buffer`` is given.
+    The replay buffer that belongs to a model zip ``--resume`` is given: a periodic checkpoint's own
+    (:func:`~sb3_pearl.evaluation.callbacks.checkpoint_replay_buffer_path`), or for the run's model ``<env_id>.zip``
+    (saved at the end or at a stop) the run folder's ``replay_buffer.pkl``. Any other zip (``best_model.zip``) has none:
+    the folder's buffer is of another step.
+
+    :param checkpoint: the model zip
+    :param env_id: the ``--env`` value
+    :return: the buffer's path (which may not exist), or None
+    """
+    own = checkpoint_replay_buffer_path(checkpoint)
+    if own is not None:
+        return own
+    if env_id is not None and os.path.basename(checkpoint) == f"{env_id}.zip":
+        return os.path.join(os.path.dirname(checkpoint), "replay_buffer.pkl")
+    return None
+
+
+def check_resume_buffer(checkpoint: str, algo: str | None, env_id: str | None = None) -> None:
+    """
+    Refuse ``--resume`` of an off-policy model without its replay buffer (:func:`resume_buffer_path`: the run would
+    restart from an empty buffer, or another step's, and no longer continue the interrupted one), unless
+    ``--resume-without-buffer`` is given.
 
     :param checkpoint: the model zip
     :param algo: the ``--algo`` value
+    :param env_id: the ``--env`` value
     """
     from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS
 
     algo_class = ALGOS.get(algo or "")
     if algo_class is None or not hasattr(algo_class, "load_replay_buffer"):
         return  # on-policy (MAML): nothing to resume but the model
-    candidates = [path for path in (checkpoint_replay_buffer_path(checkpoint),) if path is not None]
-    candidates.append(os.path.join(os.path.dirname(checkpoint), "replay_buffer.pkl"))
-    if not any(os.path.isfile(path) for path in candidates):
+    path = resume_buffer_path(checkpoint, env_id)
+    if path is None:
         raise UsageError(
-            f"--resume {checkpoint}: no replay buffer beside it ({' or '.join(candidates)}), so the run would restart "
-            "from an empty buffer and differ from the uninterrupted one; add --resume-without-buffer to go on anyway"
+            f"--resume {checkpoint}: no replay buffer belongs to this model (a checkpoint's is "
+            "<prefix>_replay_buffer_<steps>_steps.pkl, the run's <EnvId>.zip has replay_buffer.pkl; the folder's "
+            "replay_buffer.pkl is of another step), so the run would differ from the uninterrupted one: resume a "
+            "checkpoint or the run's model, or add --resume-without-buffer to go on from an empty buffer"
+        )
+    if not os.path.isfile(path):
+        raise UsageError(
+            f"--resume {checkpoint}: no replay buffer beside it ({path}), so the run would restart from an empty buffer "
+            "and differ from the uninterrupted one; add --resume-without-buffer to go on anyway"
         )
 
 
-__all__ = ["DEFAULT_CHECKPOINT_MINUTES", "PROJECT_FLAGS_HELP", "ProjectFlags", "check_resume_buffer", "parse_project_flags"]
+__all__ = [
+    "DEFAULT_CHECKPOINT_MINUTES",
+    "PROJECT_FLAGS_HELP",
+    "ProjectFlags",
+    "check_resume_buffer",
+    "parse_project_flags",
+    "resume_buffer_path",
+    "split_own_flags",
+]

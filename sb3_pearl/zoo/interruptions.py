@@ -10,11 +10,15 @@
   (:class:`SetupInterrupted`, exit status 128 + the signal);
 - an exception during training saving the model reached so far into the run folder, saying where, re-raised;
 - a final save that fails (no space left, ...) answered in one line naming the file (exit status 1);
-- ``--resume`` (:attr:`resume`): training continues a checkpoint's run with its counters, up to ``n_timesteps``.
+- ``--resume`` (:attr:`resume`): training continues a checkpoint's run with its counters, up to ``n_timesteps``;
+- ``--vec-env subproc`` workers that ignore SIGINT and SIGTERM (:class:`SignalShieldedSubprocVecEnv`): Ctrl-C reaches
+  the terminal's whole process group, and a worker that died of it broke the env pipe under the stop; the main process
+  stops training and closes them.
 """
 
 from __future__ import annotations
 
+import atexit
 import errno
 import glob
 import json
@@ -23,12 +27,15 @@ import shlex
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+import weakref
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
+import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.callbacks import StopOnSignalCallback, StopRequested
@@ -56,6 +63,44 @@ class SetupInterrupted(KeyboardInterrupt):
     def exit_status(self) -> int:
         """128 + the signal, as a process killed by it."""
         return 128 + int(signal.Signals[self.signal_name])
+
+
+def _shielded(env_fn: Callable[[], gym.Env]) -> Callable[[], gym.Env]:
+    """``env_fn`` that first makes the process it runs in (a worker) ignore SIGINT and SIGTERM."""
+
+    def make() -> gym.Env:
+        for signum in STOP_SIGNALS:
+            signal.signal(signum, signal.SIG_IGN)
+        return env_fn()
+
+    return make
+
+
+class SignalShieldedSubprocVecEnv(SubprocVecEnv):
+    """
+    SB3's ``SubprocVecEnv`` whose workers ignore SIGINT and SIGTERM: a stop is the main process's to make (it finishes
+    the step, saves and closes the workers), where a worker killed by the terminal's Ctrl-C broke the pipe under it.
+
+    :param env_fns: the env makers, as for ``SubprocVecEnv``
+    :param start_method: as for ``SubprocVecEnv``
+    """
+
+    def __init__(self, env_fns: list[Callable[[], gym.Env]], start_method: str | None = None) -> None:
+        super().__init__([_shielded(env_fn) for env_fn in env_fns], start_method=start_method)
+        # multiprocessing ends daemon workers at exit with SIGTERM, which these ignore: close them first (an env left
+        # open, e.g. the final meta-test's after a stop, would otherwise hang the exit)
+        atexit.register(_close_at_exit, weakref.ref(self))
+
+
+def _close_at_exit(ref: weakref.ref[SignalShieldedSubprocVecEnv]) -> None:
+    """Close the VecEnv ``ref`` names, if it is still open."""
+    vec_env = ref()
+    if vec_env is not None and not vec_env.closed:
+        try:
+            vec_env.close()
+        except (BrokenPipeError, EOFError, OSError):
+            for process in vec_env.processes:
+                process.kill()
 
 
 class InterruptibleExperimentManager(ExperimentManager):
@@ -95,6 +140,12 @@ class InterruptibleExperimentManager(ExperimentManager):
             self._save_after_failure(model, error)
             raise
         self._phase = "saving"  # from here on, a signal no longer interrupts the save
+
+    def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
+        """rl_zoo3's ``create_envs``; ``--vec-env subproc`` makes :class:`SignalShieldedSubprocVecEnv` workers."""
+        if self.vec_env_class is SubprocVecEnv:
+            self.vec_env_class = SignalShieldedSubprocVecEnv
+        return super().create_envs(n_envs, eval_env=eval_env, no_log=no_log)
 
     def _learn_resumed(self, model: BaseAlgorithm) -> None:
         """
@@ -211,6 +262,7 @@ class InterruptibleExperimentManager(ExperimentManager):
         if not getattr(self, "_previous_handlers", None):
             self._previous_handlers = self._install_signal_handlers()
         stopped_in_training = self._stop_signal is not None
+        stopped_in_save = False
         try:
             try:
                 super().save_trained_model(model)
@@ -222,7 +274,10 @@ class InterruptibleExperimentManager(ExperimentManager):
                         model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
             except OSError as error:  # e.g. no space left: one line, not the writer's chained tracebacks
                 raise SystemExit(self._save_failed_message(error)) from None
-            if not stopped_in_training:
+            stopped_in_save = not stopped_in_training and self._stop_signal is not None
+            if stopped_in_save:
+                print(f"{self._stop_signal} came during the save: the final meta-test is skipped", flush=True)
+            elif not stopped_in_training:
                 self._phase = "after save"  # a signal now stops what follows the save
                 try:
                     self.after_save(model)
@@ -232,7 +287,8 @@ class InterruptibleExperimentManager(ExperimentManager):
             self._phase = "done"
             self._restore_signal_handlers()
         if self._stop_signal is not None:
-            self._mark_interrupted(model, stopped_in_training, buffer_path if stopped_in_training else None)
+            during = "training" if stopped_in_training else "final save" if stopped_in_save else "final meta-test"
+            self._mark_interrupted(model, during, buffer_path if stopped_in_training else None)
 
     def _save_failed_message(self, error: OSError) -> str:
         """
@@ -262,16 +318,24 @@ class InterruptibleExperimentManager(ExperimentManager):
                 del args[index : index + 2]
         return " ".join([program_name(), *map(shlex.quote, args), "--resume", shlex.quote(model_path)])
 
-    def _mark_interrupted(self, model: BaseAlgorithm, in_training: bool, buffer_path: str | None) -> None:
-        """Write ``interrupted.json``, say what was saved and how to go on, and exit with status 128 + the signal."""
+    def _mark_interrupted(self, model: BaseAlgorithm, during: str, buffer_path: str | None) -> None:
+        """
+        Write ``interrupted.json``, say what was saved and how to go on, and exit with status 128 + the signal.
+
+        :param model: the saved model
+        :param during: where the signal came: ``training``, ``final save`` (training complete, the final meta-test
+            skipped) or ``final meta-test``
+        :param buffer_path: the replay buffer saved for the resume, if any
+        """
         assert self._stop_signal is not None
+        in_training = during == "training"
         signum = int(signal.Signals[self._stop_signal])
         finished = model.num_timesteps >= self.n_timesteps and int(getattr(model, "_pending_gradient_steps", 0)) == 0
         exact = in_training and not self._stopped_at_once and (self._stop_callback.stopped or finished)
         resume = self._resume_command(self._model_path())
         record = {
             "signal": self._stop_signal,
-            "during": "training" if in_training else "final meta-test",
+            "during": during,
             "num_timesteps": int(model.num_timesteps),
             "n_timesteps": int(self.n_timesteps),
             "model": self._model_path(),
@@ -297,7 +361,7 @@ class InterruptibleExperimentManager(ExperimentManager):
             )
         else:
             print(
-                f"Stopped by {self._stop_signal} during the final meta-test: training is complete and the model saved to "
+                f"Stopped by {self._stop_signal} during the {during}: training is complete and the model saved to "
                 f"{self._model_path()}; meta_test.* not written ({INTERRUPTED_FILE} written)",
                 flush=True,
             )
@@ -307,4 +371,11 @@ class InterruptibleExperimentManager(ExperimentManager):
         """What runs once the trained model is saved (the meta-test manager's final meta-test); a signal stops it."""
 
 
-__all__ = ["INTERRUPTED_FILE", "InterruptibleExperimentManager", "SetupInterrupted", "StopOnSignalCallback", "StopRequested"]
+__all__ = [
+    "INTERRUPTED_FILE",
+    "InterruptibleExperimentManager",
+    "SetupInterrupted",
+    "SignalShieldedSubprocVecEnv",
+    "StopOnSignalCallback",
+    "StopRequested",
+]
