@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch as th
 import yaml
 
 from sb3_pearl.diagnose import main as diagnose_main
@@ -124,6 +125,15 @@ def test_run_folder_yaml_is_read_safely(tmp_path: Path) -> None:
     path.write_text("env: !!python/name:os.system\n")
     with pytest.raises(UnsafeConfigError, match="python/name:os.system"):
         load_run_yaml(path)
+    # an Optuna trial's config.yml names its activation class (convert_pearl_params): looked up, nothing else is
+    trial = OrderedDict([("policy_kwargs", {"net_arch": [64, 64], "activation_fn": th.nn.ReLU})])
+    path.write_text(yaml.dump(trial))
+    assert "!!python/name:torch.nn.modules.activation.ReLU" in path.read_text()
+    assert load_run_yaml(path) == trial
+    for name in ("__class__", "Tensor", "F"):  # the module itself, a non-Module class, a submodule
+        path.write_text(f"a: !!python/name:torch.nn.modules.activation.{name} ''\n")
+        with pytest.raises(UnsafeConfigError, match=f"python/name:torch.nn.modules.activation.{name}"):
+            load_run_yaml(path)
 
 
 @pytest.mark.parametrize("poisoned", ["args.yml", "config.yml"])

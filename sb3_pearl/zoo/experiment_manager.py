@@ -313,7 +313,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         differ from those in the run's ``<EnvId>/config.yml``, except :data:`RESUME_MAY_CHANGE` (the budget to run up
         to, the evaluation settings). A model zip without its run's config is resumed with the settings given.
         """
-        config = os.path.join(os.path.dirname(self.trained_agent), self.env_name.gym_id, "config.yml")
+        config = os.path.join(os.path.dirname(self.trained_agent), str(self.env_name), "config.yml")  # the run's params path
         if not os.path.isfile(config):
             print(f"Note: no {config} beside the checkpoint: its run's hyperparameters cannot be checked against these")
             return

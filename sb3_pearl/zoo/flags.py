@@ -10,6 +10,8 @@ import math
 import os
 from typing import NamedTuple
 
+from huggingface_sb3 import EnvironmentName
+
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.budget import budget_hyperparams
@@ -83,7 +85,7 @@ def parse_project_flags(args: list[str]) -> ProjectFlags:
             raise UsageError(
                 "--resume takes the checkpoint's model zip, e.g. --resume logs/pearl/Env_1/rl_model_5000_steps.zip"
             )
-        if "-i" in args or "--trained-agent" in args:
+        if any(arg.partition("=")[0] in ("-i", "--trained-agent") for arg in args):
             raise UsageError("--resume and -i/--trained-agent exclude each other (--resume is -i that keeps the counters)")
         args[index] = "--trained-agent"
         resume = True
@@ -137,7 +139,7 @@ def resume_buffer_path(checkpoint: str, env_id: str | None) -> str | None:
     own = checkpoint_replay_buffer_path(checkpoint)
     if own is not None:
         return own
-    if env_id is not None and os.path.basename(checkpoint) == f"{env_id}.zip":
+    if env_id is not None and os.path.basename(checkpoint) == f"{EnvironmentName(env_id)}.zip":  # the run's file name
         return os.path.join(os.path.dirname(checkpoint), "replay_buffer.pkl")
     return None
 

@@ -77,6 +77,7 @@ EXPERIMENT_MANAGER_HOOKS: dict[str, tuple[str, ...]] = {
     "hyperparameters_optimization": ("self",),
     "learn": ("self", "model"),
     "save_trained_model": ("self", "model"),
+    "create_envs": ("self", "n_envs", "eval_env", "no_log"),
 }
 # ExperimentManager's constructor keywords the project passes (``config``) or reads back as attributes.
 EXPERIMENT_MANAGER_KWARGS: tuple[str, ...] = (
@@ -123,6 +124,7 @@ EXPERIMENT_MANAGER_ATTRIBUTES: tuple[str, ...] = (
     "log_path",
     "save_path",
     "params_path",
+    "vec_env_class",
 )
 
 

@@ -4,10 +4,12 @@ rl_zoo3 reads a run folder's ``args.yml`` and ``config.yml`` with ``yaml.UnsafeL
 dict-valued strings into dicts with ``eval()``: opening a folder someone else wrote can run any code
 (``!!python/object/apply:os.system [...]``). The project's commands read them here instead:
 
-- :class:`RunFolderLoader`: YAML's safe loader plus exactly the two Python tags rl_zoo3's
-  ``yaml.dump`` writes into these files, ``!!python/object/apply:collections.OrderedDict`` (the
-  files themselves) and ``!!python/tuple`` (tuple values such as ``train_freq``); any other
-  ``!!python/...`` tag is refused with :class:`UnsafeConfigError`;
+- :class:`RunFolderLoader`: YAML's safe loader plus the Python tags rl_zoo3's ``yaml.dump`` writes
+  into these files, ``!!python/object/apply:collections.OrderedDict`` (the files themselves),
+  ``!!python/tuple`` (tuple values such as ``train_freq``) and ``!!python/name:`` for torch's
+  activation classes only (``activation_fn`` of an Optuna trial's ``policy_kwargs``, or of a
+  ``-params policy_kwargs:"dict(activation_fn=nn.Tanh)"``: the class is looked up, nothing is
+  called); any other ``!!python/...`` tag is refused with :class:`UnsafeConfigError`;
 - :func:`parse_dict_string`: ``"dict(n_adapt=3)"`` / ``"{'n_adapt': 3}"`` parsed with :mod:`ast`,
   literals only;
 - :func:`get_saved_hyperparams`: rl_zoo3's function of the same name over the safe loader.
@@ -56,6 +58,22 @@ def _construct_tuple(loader: yaml.SafeLoader, node: yaml.Node) -> tuple[Any, ...
     return tuple(loader.construct_sequence(node, deep=True))
 
 
+ACTIVATION_MODULE = "torch.nn.modules.activation"  # the one module whose classes a run-folder YAML may name
+
+
+def _construct_activation(loader: yaml.SafeLoader, name: str, node: yaml.Node) -> Any:
+    """``!!python/name:torch.nn.modules.activation.<Class>``: that class (looked up, not called); anything else refused."""
+    module, _, attribute = name.rpartition(".")
+    if module != ACTIVATION_MODULE or not attribute.isidentifier() or attribute.startswith("_"):
+        return _refuse(loader, f"name:{name}", node)
+    import torch.nn.modules.activation as activations
+
+    found = getattr(activations, attribute, None)
+    if not (isinstance(found, type) and issubclass(found, activations.Module)):
+        return _refuse(loader, f"name:{name}", node)
+    return found
+
+
 def _refuse(loader: yaml.SafeLoader, tag_suffix: str, node: yaml.Node) -> Any:
     raise UnsafeConfigError(
         f"refusing the YAML tag '!!python/{tag_suffix}' ({node.start_mark.name}, line {node.start_mark.line + 1}): "
@@ -67,6 +85,7 @@ def _refuse(loader: yaml.SafeLoader, tag_suffix: str, node: yaml.Node) -> Any:
 
 RunFolderLoader.add_constructor("tag:yaml.org,2002:python/object/apply:collections.OrderedDict", _construct_ordered_dict)
 RunFolderLoader.add_constructor("tag:yaml.org,2002:python/tuple", _construct_tuple)
+RunFolderLoader.add_multi_constructor("tag:yaml.org,2002:python/name:", _construct_activation)
 RunFolderLoader.add_multi_constructor("tag:yaml.org,2002:python/", _refuse)
 
 
