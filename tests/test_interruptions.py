@@ -409,8 +409,8 @@ def test_a_resume_with_other_hyperparameters_is_refused(tmp_path: Path) -> None:
 
 
 def test_a_resumed_run_evaluates_and_checkpoints_on_the_uninterrupted_runs_grid(tmp_path: Path) -> None:
-    """Guards against: the resumed run's callbacks counted calls from 0, so a run cut at 200 evaluated at 320 (200 +
-    120) where the uninterrupted run evaluates at 240 and 360; --save-freq checkpoints likewise."""
+    """Guards against: the resumed run's callbacks counted calls from 0, so a run cut at 200 evaluated at 290 and 410
+    where the uninterrupted run evaluates at 240 and 360; --save-freq checkpoints likewise."""
     faulty_envs.send_signals({200: signal.SIGTERM})
     logs = tmp_path / "logs"
     every = ["--eval-freq", "120", "--save-freq", "120"]
