@@ -332,7 +332,8 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             raise UsageError(
                 f"--resume {self.trained_agent}: the hyperparameters differ from the run's ({config}): "
                 f"{'; '.join(changed)}. A resume continues the run as it was: give the run's settings (its YAML entry, "
-                "--budget and -params), or train a new run with -i to continue from the model with new ones"
+                "--budget and -params; a key 'not set in the run' is removed from the entry, -params cannot unset it), "
+                "or train a new run with -i to continue from the model with new ones"
             )
 
     def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: VecEnv) -> BaseAlgorithm:
