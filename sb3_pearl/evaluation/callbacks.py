@@ -288,13 +288,12 @@ class ResumableCheckpointCallback(CheckpointCallback):
         if self._previous and model_path in self._previous:
             self._last_save = time.monotonic()
             return  # nothing new since the last checkpoint (same step count, same gradient steps): keep it
-        paths = []
+        buffer_paths: list[str] = []
         if getattr(self.model, "replay_buffer", None) is not None and hasattr(self.model, "save_replay_buffer"):
-            buffer_path = self._checkpoint_path("replay_buffer_", extension="pkl")
-            self.model.save_replay_buffer(buffer_path)  # type: ignore[attr-defined]
-            paths.append(buffer_path)
+            buffer_paths.append(self._checkpoint_path("replay_buffer_", extension="pkl"))
+            self.model.save_replay_buffer(buffer_paths[0])  # type: ignore[attr-defined]
         self.model.save(model_path)  # last: a checkpoint's zip on disk means its buffer is too (a kill between them)
-        paths.insert(0, model_path)
+        paths = [model_path, *buffer_paths]
         if self.keep_last:
             for old in self._previous:
                 if old not in paths and os.path.exists(old):

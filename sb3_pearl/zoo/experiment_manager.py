@@ -350,7 +350,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         own_buffer = resume_buffer_path(self.trained_agent, self.env_name.gym_id)
 
         def checked_load(model: BaseAlgorithm, path: str, *args: Any, **kwargs: Any) -> None:
-            if self.resume and os.path.abspath(path) != os.path.abspath(own_buffer or ""):
+            if self.resume and (own_buffer is None or os.path.abspath(path) != os.path.abspath(own_buffer)):
                 return  # the folder's replay_buffer.pkl belongs to its <EnvId>.zip, not to this checkpoint
             self._load_replay_buffer(load_buffer, model, path, *args, **kwargs)
 
