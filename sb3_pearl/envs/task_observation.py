@@ -88,19 +88,15 @@ class TaskObservation(gym.ObservationWrapper):
                 f"TaskObservation appends the task to a flat Box observation; {type(base).__name__}'s observation space "
                 f"is {space} (flatten it first, e.g. gymnasium.wrappers.FlattenObservation)"
             )
-        if standardisation is None:
+        if standardisation is None:  # the training distribution's own statistics, over REFERENCE_TASKS of its tasks
             reference = np.stack([task_features(base, task) for task in base.sample_tasks(REFERENCE_TASKS, seed=0)])
-        else:  # one task tells the feature count; the given standardisation replaces the env's own
-            reference = task_features(base, base.get_task())[None]
-        if reference.ndim != 2 or reference.shape[1] == 0:
-            raise ValueError(f"TaskObservation: {type(base).__name__}'s tasks hold no number to tell the agent")
-        self.task_dim = int(reference.shape[1])
-        if standardisation is None:
             std = reference.std(axis=0)
-            self.task_mean = reference.mean(axis=0)
-            self.task_std = np.where(std > 1e-8, std, 1.0)  # a constant feature is only centred
-        else:
-            self.standardise_with(standardisation)
+            std = np.where(std > 1e-8, std, 1.0)  # a constant feature is only centred
+            standardisation = {"mean": reference.mean(axis=0).tolist(), "std": std.tolist()}
+        self.task_dim = int(task_features(base, base.get_task()).shape[0])
+        if self.task_dim == 0:
+            raise ValueError(f"TaskObservation: {type(base).__name__}'s tasks hold no number to tell the agent")
+        self.standardise_with(standardisation)
         self._features = self.task_vector(base.get_task())
         # float32, as the networks read it (MuJoCo's float64 observations would double the replay buffer: a 500k Ant
         # buffer is 0.9 GB in float64)
