@@ -29,6 +29,7 @@ from sb3_pearl.common.callbacks import StopOnSignalCallback, gradient_step_event
 from sb3_pearl.evaluation import progress
 from sb3_pearl.evaluation.callbacks import MetaTestCallback, ResumableCheckpointCallback, checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.progress import TrainingProgressCallback
+from sb3_pearl.registry import constructor_parameters
 from sb3_pearl.zoo import MetaExperimentManager, train
 from sb3_pearl.zoo.flags import parse_project_flags
 from sb3_pearl.zoo.usage import UsageError
@@ -37,6 +38,9 @@ from tests.conftest import (
     TINY_ZOO,
     Completed,
     run_in_process,
+    tiny_finetune,
+    tiny_maml,
+    tiny_pearl,
     write_model_zip,
 )
 
@@ -400,11 +404,14 @@ def test_a_resume_with_other_hyperparameters_is_refused(tmp_path: Path) -> None:
     model = logs / "pearlplus" / f"{SIGNAL_ENV}_1" / f"{SIGNAL_ENV}.zip"
     assert _train_signal_env(tmp_path, logs, check=False).returncode == 128 + signal.SIGTERM
     faulty_envs.send_signals({})
-    refused = _train_signal_env(tmp_path, logs, "--resume", str(model), "-params", "batch_size:8", check=False)
+    assert "gamma" not in TINY_ZOO and constructor_parameters(PEARLPlus)["gamma"].default == 0.99
+    refused = _train_signal_env(tmp_path, logs, "--resume", str(model), "-params", "batch_size:8", "gamma:0.9", check=False)
     assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0, refused.stderr[-2000:]
     assert f"--resume {model}: the hyperparameters differ from the run's (" in refused.stderr
     assert f"batch_size: {TINY_ZOO['batch_size']!r} in the run, 8 now" in refused.stderr
-    resumed = _train_signal_env(tmp_path, logs, "--resume", str(model), "-n", "480")  # a longer budget: allowed
+    assert "gamma: not set (default 0.99) in the run, 0.9 now" in refused.stderr
+    # a longer budget is allowed, and so is a key the run did not set given at its default (an entry that gained it)
+    resumed = _train_signal_env(tmp_path, logs, "--resume", str(model), "-n", "480", "-params", "gamma:0.99")
     assert "Resuming at 200 timesteps: 280 to go" in resumed.stdout
 
 
@@ -418,10 +425,48 @@ def test_a_resumed_run_evaluates_and_checkpoints_on_the_uninterrupted_runs_grid(
     cut = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
     faulty_envs.send_signals({})
     _train_signal_env(tmp_path, logs, *every, "--resume", str(cut / f"{SIGNAL_ENV}.zip"))
-    resumed = logs / "pearlplus" / f"{SIGNAL_ENV}_2"
-    with open(resumed / "meta_test_history.csv", newline="") as file:
-        evaluated = sorted({int(row["timesteps"]) for row in csv.DictReader(file)})
-    assert evaluated == [240, 360]
+    assert _evaluated_timesteps(logs / "pearlplus" / f"{SIGNAL_ENV}_2") == [240, 360]
+
+
+def _evaluated_timesteps(run: Path) -> list[int]:
+    with open(run / "meta_test_history.csv", newline="") as file:
+        return sorted({int(row["timesteps"]) for row in csv.DictReader(file)})
+
+
+def test_a_resumed_run_with_two_envs_evaluates_on_the_uninterrupted_runs_grid(tmp_path: Path) -> None:
+    """Guards against: the resumed callbacks started counting at num_timesteps // n_envs, which with two envs runs
+    behind the calls made (PEARL steps one env alone while the other idles at a collection's end), so the resumed run
+    evaluated off the uninterrupted run's grid."""
+    every = ["--eval-freq", "50", "-params", "n_envs:2"]
+    faulty_envs.send_signals({})
+    _train_signal_env(tmp_path, tmp_path / "full", *every)
+    full = _evaluated_timesteps(tmp_path / "full" / "pearlplus" / f"{SIGNAL_ENV}_1")
+    faulty_envs.send_signals({580: signal.SIGTERM})  # env steps of training and evaluations: cut after idle calls
+    logs = tmp_path / "cut"
+    assert _train_signal_env(tmp_path, logs, *every, check=False).returncode == 128 + signal.SIGTERM
+    cut = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
+    model = PEARLPlus.load(cut / f"{SIGNAL_ENV}.zip")
+    assert model.num_vec_env_steps != model.num_timesteps // 2  # the case the old counter got wrong
+    faulty_envs.send_signals({})
+    _train_signal_env(tmp_path, logs, *every, "--resume", str(cut / f"{SIGNAL_ENV}.zip"))
+    resumed = _evaluated_timesteps(logs / "pearlplus" / f"{SIGNAL_ENV}_2")
+    assert len(full) >= 4 and _evaluated_timesteps(cut) + resumed == full
+
+
+def test_every_algorithm_counts_its_vec_env_steps_saves_the_count_and_restarts_it_with_the_step_count(
+    tiny_kwargs: dict[str, Any], tmp_path: Path
+) -> None:
+    """Guards against: a collection that does not advance the VecEnv-step count (a resumed run's callbacks then fall
+    back to num_timesteps // n_envs), a zip without it, or a new learn() that keeps it (its callbacks start mid-grid)."""
+    for model in (tiny_pearl(tiny_kwargs), tiny_finetune(), tiny_maml()):
+        name = type(model).__name__
+        model.learn(150)
+        assert model.num_vec_env_steps == model.num_timesteps >= 150, name  # one env: one env step per VecEnv step
+        model.save(tmp_path / name)
+        loaded = type(model).load(tmp_path / f"{name}.zip", env=model.get_env())
+        assert loaded.num_vec_env_steps == model.num_vec_env_steps, name
+        loaded.learn(60, reset_num_timesteps=True)
+        assert loaded.num_vec_env_steps == loaded.num_timesteps < model.num_timesteps, name
 
 
 def test_call_counting_callbacks_start_at_the_models_env_steps(tiny_kwargs: dict[str, Any], tmp_path: Path) -> None:
@@ -434,6 +479,10 @@ def test_call_counting_callbacks_start_at_the_models_env_steps(tiny_kwargs: dict
     for callback in (ResumableCheckpointCallback(120, str(tmp_path), "rl_model"), MetaTestCallback(gym.make(NOISY_ENV), 120)):
         callback.init_callback(model)
         assert callback.n_calls == 250, type(callback).__name__
+    model.num_vec_env_steps = 130  # a model that counted its VecEnv steps (two envs, some idle): that count
+    for callback in (ResumableCheckpointCallback(120, str(tmp_path), "rl_model"), MetaTestCallback(gym.make(NOISY_ENV), 120)):
+        callback.init_callback(model)
+        assert callback.n_calls == 130, type(callback).__name__
 
 
 @pytest.mark.parametrize(

@@ -183,6 +183,9 @@ class MetaAlgorithm(BaseAlgorithm):
     # The task family the model was built on (MetaTaskEnv.task_family; None: its env does not tell, or a model saved
     # before it was recorded): load(env=...) and set_env refuse an env of another family.
     task_family: str | None
+    # VecEnv steps taken in training (one ``on_step`` call of the callbacks each, whatever the number of envs stepping):
+    # a resumed run's call-counting callbacks continue from it. 0 in a model saved before it was recorded.
+    num_vec_env_steps: int
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -215,6 +218,7 @@ class MetaAlgorithm(BaseAlgorithm):
         self.train_tasks = list(train_tasks) if train_tasks is not None else []
         self.test_tasks = list(test_tasks) if test_tasks is not None else []
         self.task_family = None
+        self.num_vec_env_steps = 0
         if self.env is not None:
             check_meta_env(
                 type(self).__name__,
@@ -309,6 +313,8 @@ class MetaAlgorithm(BaseAlgorithm):
         env_reset = reset_num_timesteps or self._last_obs is None  # SB3's condition for resetting the envs
         if env_reset:
             self._before_env_reset()
+        if reset_num_timesteps:  # SB3 restarts num_timesteps in _setup_learn, before the callbacks read the counters
+            self.num_vec_env_steps = 0
         result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
         # First learn() after load(): continue the saved RNG streams (after SB3's env reset, when the envs' saved state
         # was not restored, reseeded them).

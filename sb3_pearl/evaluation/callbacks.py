@@ -313,14 +313,17 @@ class ResumableCheckpointCallback(CheckpointCallback):
 
 def continued_calls(model: BaseAlgorithm) -> int:
     """
-    The ``on_step`` calls an uninterrupted run would have made by the model's env steps (one per VecEnv step): where a
-    callback counting calls starts, so that a resumed run evaluates and checkpoints on the uninterrupted run's grid
-    (every ``eval_freq`` / ``save_freq`` calls from the start, not from the resume).
+    The ``on_step`` calls the model's training has made (one per VecEnv step): where a callback counting calls starts,
+    so that a resumed run evaluates and checkpoints on the uninterrupted run's grid (every ``eval_freq`` /
+    ``save_freq`` calls from the start, not from the resume).
 
     :param model: the model training starts or resumes
-    :return: ``num_timesteps // n_envs`` (0 for a new run)
+    :return: the project's algorithms: their ``num_vec_env_steps``; another SB3 algorithm, or a model saved before it
+        was recorded: ``num_timesteps // n_envs`` (exact for SB3's collection, where every env steps each call);
+        0 for a new run
     """
-    return int(model.num_timesteps) // max(int(model.n_envs), 1)
+    counted = int(getattr(model, "num_vec_env_steps", 0))
+    return counted if counted > 0 else int(model.num_timesteps) // max(int(model.n_envs), 1)
 
 
 def checkpoint_replay_buffer_path(model_path: str) -> str | None:

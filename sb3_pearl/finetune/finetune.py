@@ -265,6 +265,11 @@ class FineTune(MetaAlgorithm, DiscreteSAC):
         if len(finished) > 0:
             self._set_random_train_tasks(finished.tolist())
 
+    def _on_step(self) -> None:
+        """After each VecEnv step of SB3's collection: count it (:attr:`num_vec_env_steps`)."""
+        super()._on_step()
+        self.num_vec_env_steps += 1
+
     def learn(
         self: SelfFineTune,
         total_timesteps: int,

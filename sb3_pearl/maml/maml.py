@@ -322,6 +322,7 @@ class MAML(MetaAlgorithm):
             obs = new_obs
 
             self.num_timesteps += len(active)
+            self.num_vec_env_steps += 1
             if callback is not None:
                 callback.update_locals(locals())
                 if not callback.on_step():

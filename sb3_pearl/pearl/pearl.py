@@ -712,6 +712,7 @@ class PEARL(MetaAlgorithm, OffPolicyAlgorithm):
                             start_piece(state, slot, current.task)
             state.collected += len(active)
             self.num_timesteps += len(active)
+            self.num_vec_env_steps += 1
             self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)  # a learning-rate schedule's
             obs = np.array(new_obs, dtype=np.float32)
             self._update_info_buffer([infos[i] for i in active], dones[active])

@@ -53,6 +53,7 @@ from sb3_pearl.common.threads import mark_num_threads_explicit, num_threads_flag
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
 from sb3_pearl.evaluation.held_out import check_meta_test_settings, model_test_tasks, write_meta_test
+from sb3_pearl.registry import constructor_parameters
 from sb3_pearl.zoo import usage
 from sb3_pearl.zoo.algos import OptunaTrialIndex, constructor_kwargs, register_algos
 from sb3_pearl.zoo.budget import budget_hyperparams
@@ -319,20 +320,32 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             return
         saved, current = dict(load_run_yaml(config) or {}), self.run_hyperparams
         missing = object()
+        # A constructor argument not set on one side is its default there: a key added to the YAML entry since the run
+        # (at the value the run used) is no change.
+        defaults = {
+            name: parameter.default
+            for name, parameter in constructor_parameters(ALGOS[self.algo]).items()
+            if parameter.default is not inspect.Parameter.empty
+        }
 
-        def shown(value: Any) -> str:
-            return "not set" if value is missing else repr(value)
+        def value(settings: dict[str, Any], key: str) -> Any:
+            return settings.get(key, defaults.get(key, missing))
+
+        def shown(settings: dict[str, Any], key: str) -> str:
+            if key in settings:
+                return repr(settings[key])
+            return "not set" if key not in defaults else f"not set (default {defaults[key]!r})"
 
         changed = [
-            f"{key}: {shown(saved.get(key, missing))} in the run, {shown(current.get(key, missing))} now"
+            f"{key}: {shown(saved, key)} in the run, {shown(current, key)} now"
             for key in sorted(saved.keys() | current.keys())
-            if key not in RESUME_MAY_CHANGE and saved.get(key, missing) != current.get(key, missing)
+            if key not in RESUME_MAY_CHANGE and value(saved, key) != value(current, key)
         ]
         if changed:
             raise UsageError(
                 f"--resume {self.trained_agent}: the hyperparameters differ from the run's ({config}): "
                 f"{'; '.join(changed)}. A resume continues the run as it was: give the run's settings (its YAML entry, "
-                "--budget and -params; a key 'not set in the run' is removed from the entry, -params cannot unset it), "
+                "--budget and -params; a key not set in the run is removed from the entry or given its default), "
                 "or train a new run with -i to continue from the model with new ones"
             )
 
