@@ -425,7 +425,13 @@ def test_a_resumed_run_evaluates_and_checkpoints_on_the_uninterrupted_runs_grid(
     cut = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
     faulty_envs.send_signals({})
     _train_signal_env(tmp_path, logs, *every, "--resume", str(cut / f"{SIGNAL_ENV}.zip"))
-    assert _evaluated_timesteps(logs / "pearlplus" / f"{SIGNAL_ENV}_2") == [240, 360]
+    resumed = logs / "pearlplus" / f"{SIGNAL_ENV}_2"
+    assert _evaluated_timesteps(cut) == [120]  # ... which the resumed run's history continues
+    assert _evaluated_timesteps(resumed) == [120, 240, 360]
+    with open(resumed / "meta_test_history.csv", newline="") as file:
+        returns = [(float(row["return_mean"]), int(row["timesteps"])) for row in csv.DictReader(file)]  # n_adapt=0
+    best_at = max(returns, key=lambda entry: (entry[0], -entry[1]))[1]
+    assert PEARLPlus.load(resumed / "best_model.zip").num_timesteps == best_at  # the best of the whole run
 
 
 def _evaluated_timesteps(run: Path) -> list[int]:
@@ -449,8 +455,7 @@ def test_a_resumed_run_with_two_envs_evaluates_on_the_uninterrupted_runs_grid(tm
     assert model.num_vec_env_steps != model.num_timesteps // 2  # the case the old counter got wrong
     faulty_envs.send_signals({})
     _train_signal_env(tmp_path, logs, *every, "--resume", str(cut / f"{SIGNAL_ENV}.zip"))
-    resumed = _evaluated_timesteps(logs / "pearlplus" / f"{SIGNAL_ENV}_2")
-    assert len(full) >= 4 and _evaluated_timesteps(cut) + resumed == full
+    assert len(full) >= 4 and _evaluated_timesteps(logs / "pearlplus" / f"{SIGNAL_ENV}_2") == full
 
 
 def test_every_algorithm_counts_its_vec_env_steps_saves_the_count_and_restarts_it_with_the_step_count(
@@ -467,6 +472,53 @@ def test_every_algorithm_counts_its_vec_env_steps_saves_the_count_and_restarts_i
         assert loaded.num_vec_env_steps == model.num_vec_env_steps, name
         loaded.learn(60, reset_num_timesteps=True)
         assert loaded.num_vec_env_steps == loaded.num_timesteps < model.num_timesteps, name
+
+
+def _write_history(folder: Path, rows: list[tuple[int, float]], n: int = 2) -> None:
+    """A meta_test_history.csv of evaluations (timesteps, adapted return) with k = 0..1 over n trajectories each."""
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "meta_test_history.csv", "w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow(["timesteps", "k", "n", "return_mean"])
+        for timesteps, adapted in rows:
+            writer.writerows([[timesteps, 0, n, adapted - 1.0], [timesteps, 1, n, adapted]])
+
+
+@pytest.mark.parametrize(
+    ("history", "n", "carried", "best"),
+    [
+        ([(100, 5.0), (200, 7.0), (300, 6.0)], 2, [100, 200], 7.0),  # past the resume point: dropped
+        ([(100, 5.0), (200, 7.0), (300, 7.0)], 2, [100, 200], 7.0),  # a tie later is not the saved best
+        ([(100, 5.0), (300, 9.0)], 2, [100], None),  # the saved best is past the resume point: this run's own
+        ([(100, 5.0), (200, 7.0)], 3, [], None),  # other trajectories per k: nothing carried
+    ],
+)
+def test_a_resumed_runs_evaluations_continue_the_cut_runs_history_and_best_model(
+    tiny_kwargs: dict[str, Any],
+    tmp_path: Path,
+    history: list[tuple[int, float]],
+    n: int,
+    carried: list[int],
+    best: float | None,
+) -> None:
+    """Guards against: a resumed run's folder held only the evaluations after the resume and a best_model.zip that was
+    the best since the resume (worse than the cut run's best), or carried evaluations of a cut run measured past the
+    checkpoint it resumes from, or measured with other settings."""
+    model = _make(tiny_kwargs)
+    model.num_timesteps = 250  # resumed from a checkpoint at 250 env steps
+    cut, resumed = tmp_path / "cut", tmp_path / "resumed"
+    _write_history(cut, history, n)
+    (cut / "best_model.zip").write_bytes(b"the cut run's best")
+    folders = {"best_model_save_path": str(resumed), "log_path": str(resumed), "resumes": str(cut)}
+    callback = MetaTestCallback(gym.make(NOISY_ENV), 50, n_tasks=2, n_adapt=1, **folders)
+    callback.init_callback(model)
+    assert (_evaluated_timesteps(resumed) if carried else []) == carried
+    assert (resumed / "meta_test_history.csv").exists() == bool(carried)
+    assert (resumed / "best_model.zip").exists() == (best is not None)
+    if best is not None:
+        assert (resumed / "best_model.zip").read_bytes() == b"the cut run's best" and callback.best_mean_reward == best
+    else:
+        assert callback.best_mean_reward == -float("inf")
 
 
 def test_call_counting_callbacks_start_at_the_models_env_steps(tiny_kwargs: dict[str, Any], tmp_path: Path) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import os
 import re
+import shutil
 import time
 from typing import Any
 
@@ -45,6 +46,9 @@ class MetaTestCallback(BaseCallback):
     :param eval_seed: seed of the task draw, of the resets and of the common random numbers
     :param best_model_save_path: folder of ``best_model.zip`` (None: not saved)
     :param log_path: folder of ``meta_test_history.csv`` (None: not written)
+    :param resumes: the folder of the run this training resumes (``train.py --resume``): its evaluations up to the
+        model's env steps start this run's history, and its ``best_model.zip`` and score this run's best when that
+        evaluation is among them (:meth:`continue_history`); None: a run of its own
     :param verbose: 0 silent, 1 a progress bar and one line per evaluation
     """
 
@@ -60,6 +64,7 @@ class MetaTestCallback(BaseCallback):
         eval_seed: int = DEFAULT_EVAL_SEED,
         best_model_save_path: str | None = None,
         log_path: str | None = None,
+        resumes: str | None = None,
         verbose: int = 1,
     ) -> None:
         super().__init__(verbose)
@@ -73,6 +78,7 @@ class MetaTestCallback(BaseCallback):
         self.eval_seed = eval_seed
         self.best_model_save_path = best_model_save_path
         self.log_path = log_path
+        self.resumes = resumes
         self.best_mean_reward = -float("inf")
         self.last_mean_reward = -float("inf")
         self.last_result: MetaTestResult | None = None
@@ -86,6 +92,55 @@ class MetaTestCallback(BaseCallback):
         for folder in (self.best_model_save_path, self.log_path):
             if folder is not None:
                 os.makedirs(folder, exist_ok=True)
+        if self.resumes is not None:
+            self.continue_history(self.resumes)
+
+    def continue_history(self, folder: str) -> None:
+        """
+        Continue the evaluations of the run in ``folder`` that this training resumes: its ``meta_test_history.csv``
+        rows up to the model's env steps (the resume point: a cut run may have evaluated past the checkpoint it
+        resumes from) start this run's history, and when its best evaluation (the first highest adapted return) is
+        among them, its ``best_model.zip`` and score are this run's best so far, so ``best_model.zip`` is the best
+        of the whole run. Nothing is carried when the history was written with other settings (other k or
+        trajectories per k); the best is this run's own when the cut run's best came after the resume point.
+
+        :param folder: the resumed run's folder
+        """
+        assert self.tasks is not None
+        path = os.path.join(folder, "meta_test_history.csv")
+        if self.log_path is None or not os.path.isfile(path):
+            return
+        with open(path, newline="") as file:
+            rows = list(csv.DictReader(file))
+        expected = {(str(k), str(len(self.tasks) * self.n_repeats)) for k in range(self.n_adapt + 1)}
+        evaluations: dict[int, list[dict[str, str]]] = {}
+        for row in rows:
+            evaluations.setdefault(int(row["timesteps"]), []).append(row)
+        if any({(row["k"], row["n"]) for row in group} != expected for group in evaluations.values()):
+            print(f"Note: {path} was written with other meta-test settings: this run's history starts anew")
+            return
+        resumed_at = int(self.model.num_timesteps)  # the callback's own num_timesteps is set at the training start
+        kept = [row for row in rows if int(row["timesteps"]) <= resumed_at]
+        own = os.path.join(self.log_path, "meta_test_history.csv")
+        if kept and not os.path.exists(own):
+            with atomic_write(own, "w", newline="") as file:
+                writer = csv.DictWriter(file, fieldnames=list(rows[0]))
+                writer.writeheader()
+                writer.writerows(kept)
+        adapted = [(float(row["return_mean"]), int(row["timesteps"])) for row in rows if row["k"] == str(self.n_adapt)]
+        if not adapted:
+            return
+        best_return, best_at = max(adapted, key=lambda entry: (entry[0], -entry[1]))  # the first of the highest
+        best_model = os.path.join(folder, "best_model.zip")
+        if best_at > resumed_at or self.best_model_save_path is None or not os.path.isfile(best_model):
+            return
+        if os.path.abspath(folder) != os.path.abspath(self.best_model_save_path):
+            with (
+                open(best_model, "rb") as source,
+                atomic_write(os.path.join(self.best_model_save_path, "best_model.zip"), "wb") as target,
+            ):
+                shutil.copyfileobj(source, target)
+        self.best_mean_reward = best_return
 
     def _on_step(self) -> bool:
         if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:

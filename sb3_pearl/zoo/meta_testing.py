@@ -17,6 +17,7 @@ Other algorithms keep rl_zoo3's ``EvalCallback``.
 from __future__ import annotations
 
 import functools
+import os
 from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -114,6 +115,8 @@ class MetaTestExperimentManager(ExperimentManager):
                     eval_seed=self.validation_seed,  # best_model.zip is never chosen on the final meta-test's tasks
                     best_model_save_path=self.save_path,
                     log_path=self.save_path,
+                    # --resume: the cut run's evaluations up to the checkpoint, and its best model, continue here
+                    resumes=os.path.dirname(self.trained_agent) if getattr(self, "resume", False) else None,
                     verbose=self.verbose,
                 )
             )
