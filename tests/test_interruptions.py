@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -432,6 +433,12 @@ def test_a_resumed_run_evaluates_and_checkpoints_on_the_uninterrupted_runs_grid(
         returns = [(float(row["return_mean"]), int(row["timesteps"])) for row in csv.DictReader(file)]  # n_adapt=0
     best_at = max(returns, key=lambda entry: (entry[0], -entry[1]))[1]
     assert PEARLPlus.load(resumed / "best_model.zip").num_timesteps == best_at  # the best of the whole run
+    # a resume that evaluates otherwise (another meta_test eval_seed: other validation tasks) starts its own history
+    other = _train_signal_env(
+        tmp_path, logs, *every, "--resume", str(cut / f"{SIGNAL_ENV}.zip"), "-params", "meta_test:dict(eval_seed=7)"
+    )
+    assert "evaluated with other meta-test settings" in other.stdout
+    assert _evaluated_timesteps(logs / "pearlplus" / f"{SIGNAL_ENV}_3") == [240, 360]
 
 
 def _evaluated_timesteps(run: Path) -> list[int]:
@@ -485,12 +492,13 @@ def _write_history(folder: Path, rows: list[tuple[int, float]], n: int = 2) -> N
 
 
 @pytest.mark.parametrize(
-    ("history", "n", "carried", "best"),
+    ("history", "n", "best_model_at", "carried", "best"),
     [
-        ([(100, 5.0), (200, 7.0), (300, 6.0)], 2, [100, 200], 7.0),  # past the resume point: dropped
-        ([(100, 5.0), (200, 7.0), (300, 7.0)], 2, [100, 200], 7.0),  # a tie later is not the saved best
-        ([(100, 5.0), (300, 9.0)], 2, [100], None),  # the saved best is past the resume point: this run's own
-        ([(100, 5.0), (200, 7.0)], 3, [], None),  # other trajectories per k: nothing carried
+        ([(100, 5.0), (200, 7.0), (300, 6.0)], 2, 200, [100, 200], 7.0),  # past the resume point: dropped
+        ([(100, 5.0), (200, 7.0), (300, 7.0)], 2, 200, [100, 200], 7.0),  # a tie later is not the saved best
+        ([(100, 5.0), (300, 9.0)], 2, 300, [100], None),  # the saved best is past the resume point: this run's own
+        ([(100, 5.0), (200, 7.0)], 2, 100, [100, 200], None),  # best_model.zip is another evaluation's model
+        ([(100, 5.0), (200, 7.0)], 3, 200, [], None),  # other trajectories per k: nothing carried
     ],
 )
 def test_a_resumed_runs_evaluations_continue_the_cut_runs_history_and_best_model(
@@ -498,17 +506,20 @@ def test_a_resumed_runs_evaluations_continue_the_cut_runs_history_and_best_model
     tmp_path: Path,
     history: list[tuple[int, float]],
     n: int,
+    best_model_at: int,
     carried: list[int],
     best: float | None,
 ) -> None:
     """Guards against: a resumed run's folder held only the evaluations after the resume and a best_model.zip that was
     the best since the resume (worse than the cut run's best), or carried evaluations of a cut run measured past the
-    checkpoint it resumes from, or measured with other settings."""
+    checkpoint it resumes from, or measured with other settings, or a best score with another evaluation's model
+    (a cut run that was itself resumed past its own cut run's best)."""
     model = _make(tiny_kwargs)
-    model.num_timesteps = 250  # resumed from a checkpoint at 250 env steps
     cut, resumed = tmp_path / "cut", tmp_path / "resumed"
     _write_history(cut, history, n)
-    (cut / "best_model.zip").write_bytes(b"the cut run's best")
+    model.num_timesteps = best_model_at
+    model.save(cut / "best_model")
+    model.num_timesteps = 250  # resumed from a checkpoint at 250 env steps
     folders = {"best_model_save_path": str(resumed), "log_path": str(resumed), "resumes": str(cut)}
     callback = MetaTestCallback(gym.make(NOISY_ENV), 50, n_tasks=2, n_adapt=1, **folders)
     callback.init_callback(model)
@@ -516,9 +527,51 @@ def test_a_resumed_runs_evaluations_continue_the_cut_runs_history_and_best_model
     assert (resumed / "meta_test_history.csv").exists() == bool(carried)
     assert (resumed / "best_model.zip").exists() == (best is not None)
     if best is not None:
-        assert (resumed / "best_model.zip").read_bytes() == b"the cut run's best" and callback.best_mean_reward == best
+        assert (resumed / "best_model.zip").read_bytes() == (cut / "best_model.zip").read_bytes()
+        assert callback.best_mean_reward == best
+        callback.best_mean_reward = best + 1.0  # a better evaluation of this run: a later learn() keeps it
+        callback.init_callback(model)
+        assert callback.best_mean_reward == best + 1.0
     else:
         assert callback.best_mean_reward == -float("inf")
+
+
+def test_an_unreadable_history_of_the_cut_run_starts_the_resumed_history_anew(
+    tiny_kwargs: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Guards against: a cut history with an empty field (a file cut short, edited) failed the resume with a ValueError."""
+    model = _make(tiny_kwargs)
+    model.num_timesteps = 250
+    cut, resumed = tmp_path / "cut", tmp_path / "resumed"
+    cut.mkdir()
+    (cut / "meta_test_history.csv").write_text("timesteps,k,n,return_mean\n100,0,2,-3.0\n,1,2,\n")
+    callback = MetaTestCallback(gym.make(NOISY_ENV), 50, n_tasks=2, n_adapt=1, log_path=str(resumed), resumes=str(cut))
+    callback.init_callback(model)
+    assert "meta_test_history.csv cannot be read" in capsys.readouterr().out
+    assert not (resumed / "meta_test_history.csv").exists() and callback.best_mean_reward == -float("inf")
+
+
+def test_a_model_saved_before_vec_env_steps_were_counted_loads_with_its_env_steps(
+    tiny_kwargs: dict[str, Any], tmp_path: Path
+) -> None:
+    """Guards against: a zip without num_vec_env_steps loaded with 0, so after one resume the next checkpoint saved only
+    the VecEnv steps since that resume and a second resume put the callbacks off the grid."""
+    model = _make(tiny_kwargs)
+    model.learn(150)
+    path = tmp_path / "old.zip"
+    model.save(path)
+    with zipfile.ZipFile(path) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(entries["data"])
+    assert data.pop("num_vec_env_steps") == model.num_timesteps  # what the older version did not write
+    entries["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, content in entries.items():
+            archive.writestr(name, content)
+    loaded = type(model).load(path, env=model.get_env())
+    assert loaded.num_vec_env_steps == model.num_timesteps  # one env
+    loaded.learn(100, reset_num_timesteps=False)
+    assert loaded.num_vec_env_steps == loaded.num_timesteps > model.num_timesteps
 
 
 def test_call_counting_callbacks_start_at_the_models_env_steps(tiny_kwargs: dict[str, Any], tmp_path: Path) -> None:

@@ -184,7 +184,8 @@ class MetaAlgorithm(BaseAlgorithm):
     # before it was recorded): load(env=...) and set_env refuse an env of another family.
     task_family: str | None
     # VecEnv steps taken in training (one ``on_step`` call of the callbacks each, whatever the number of envs stepping):
-    # a resumed run's call-counting callbacks continue from it. 0 in a model saved before it was recorded.
+    # a resumed run's call-counting callbacks continue from it. A model saved before it was recorded loads with
+    # ``num_timesteps // n_envs``.
     num_vec_env_steps: int
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -563,6 +564,8 @@ class MetaAlgorithm(BaseAlgorithm):
             self.__dict__.pop(name, None)
         if held is None:
             return
+        if "num_vec_env_steps" not in held:  # saved before it was recorded: every env stepped at each VecEnv step
+            self.num_vec_env_steps = int(self.num_timesteps) // max(int(self.n_envs), 1)
         own = type(self)._data_of_classes([c for c in type(self).__mro__ if issubclass(c, MetaAlgorithm)])
         for name, (_, value) in own.items():
             if name not in held and name not in overrides:

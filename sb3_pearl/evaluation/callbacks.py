@@ -16,6 +16,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pearl.common.adaptation import check_adaptive
 from sb3_pearl.common.atomic import atomic_write
+from sb3_pearl.common.persistence import read_model_data
 from sb3_pearl.common.seeding import get_global_rng_state, set_global_rng_state
 from sb3_pearl.envs.task_protocol import Task
 from sb3_pearl.evaluation.held_out import DEFAULT_EVAL_SEED, model_test_tasks, run_meta_test
@@ -94,15 +95,18 @@ class MetaTestCallback(BaseCallback):
                 os.makedirs(folder, exist_ok=True)
         if self.resumes is not None:
             self.continue_history(self.resumes)
+            self.resumes = None  # once: a later learn() with this callback keeps its own best
 
     def continue_history(self, folder: str) -> None:
         """
         Continue the evaluations of the run in ``folder`` that this training resumes: its ``meta_test_history.csv``
         rows up to the model's env steps (the resume point: a cut run may have evaluated past the checkpoint it
-        resumes from) start this run's history, and when its best evaluation (the first highest adapted return) is
-        among them, its ``best_model.zip`` and score are this run's best so far, so ``best_model.zip`` is the best
-        of the whole run. Nothing is carried when the history was written with other settings (other k or
-        trajectories per k); the best is this run's own when the cut run's best came after the resume point.
+        resumes from) start this run's history, and when its ``best_model.zip`` is the model of its best evaluation
+        (the first highest adapted return) and that evaluation is among them, the zip and its score are this run's
+        best so far, so ``best_model.zip`` is the best of the whole run. Nothing is carried from a history of other
+        settings (other k or trajectories per k; train.py passes ``folder`` only when the cut run's meta-test
+        settings, evaluation episodes and env kwargs are this run's) or one that cannot be read; the best is this
+        run's own when the cut run's best came after the resume point.
 
         :param folder: the resumed run's folder
         """
@@ -110,13 +114,18 @@ class MetaTestCallback(BaseCallback):
         path = os.path.join(folder, "meta_test_history.csv")
         if self.log_path is None or not os.path.isfile(path):
             return
-        with open(path, newline="") as file:
-            rows = list(csv.DictReader(file))
+        try:
+            with open(path, newline="") as file:
+                rows = list(csv.DictReader(file))
+            evaluations: dict[int, set[tuple[str, str]]] = {}
+            for row in rows:
+                evaluations.setdefault(int(row["timesteps"]), set()).add((row["k"], row["n"]))
+            adapted = [(float(row["return_mean"]), int(row["timesteps"])) for row in rows if row["k"] == str(self.n_adapt)]
+        except (KeyError, ValueError) as error:
+            print(f"Note: {path} cannot be read ({error!r}): this run's history starts anew")
+            return
         expected = {(str(k), str(len(self.tasks) * self.n_repeats)) for k in range(self.n_adapt + 1)}
-        evaluations: dict[int, list[dict[str, str]]] = {}
-        for row in rows:
-            evaluations.setdefault(int(row["timesteps"]), []).append(row)
-        if any({(row["k"], row["n"]) for row in group} != expected for group in evaluations.values()):
+        if any(group != expected for group in evaluations.values()):
             print(f"Note: {path} was written with other meta-test settings: this run's history starts anew")
             return
         resumed_at = int(self.model.num_timesteps)  # the callback's own num_timesteps is set at the training start
@@ -127,12 +136,11 @@ class MetaTestCallback(BaseCallback):
                 writer = csv.DictWriter(file, fieldnames=list(rows[0]))
                 writer.writeheader()
                 writer.writerows(kept)
-        adapted = [(float(row["return_mean"]), int(row["timesteps"])) for row in rows if row["k"] == str(self.n_adapt)]
-        if not adapted:
+        if not adapted or self.best_model_save_path is None:
             return
         best_return, best_at = max(adapted, key=lambda entry: (entry[0], -entry[1]))  # the first of the highest
         best_model = os.path.join(folder, "best_model.zip")
-        if best_at > resumed_at or self.best_model_save_path is None or not os.path.isfile(best_model):
+        if best_at > resumed_at or saved_num_timesteps(best_model) != best_at:  # not the model of that evaluation
             return
         if os.path.abspath(folder) != os.path.abspath(self.best_model_save_path):
             with (
@@ -379,6 +387,19 @@ def continued_calls(model: BaseAlgorithm) -> int:
     """
     counted = int(getattr(model, "num_vec_env_steps", 0))
     return counted if counted > 0 else int(model.num_timesteps) // max(int(model.n_envs), 1)
+
+
+def saved_num_timesteps(model_path: str) -> int | None:
+    """
+    The env steps an SB3 model zip was saved at, read from its ``data`` entry without loading the model.
+
+    :param model_path: the zip
+    :return: its ``num_timesteps``; None when the file is missing or is not such a zip
+    """
+    try:
+        return int(read_model_data(model_path)["num_timesteps"])
+    except (OSError, KeyError, ValueError, TypeError):  # DamagedModelError is a ValueError
+        return None
 
 
 def checkpoint_replay_buffer_path(model_path: str) -> str | None:

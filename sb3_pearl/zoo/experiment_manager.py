@@ -59,10 +59,15 @@ from sb3_pearl.zoo.algos import OptunaTrialIndex, constructor_kwargs, register_a
 from sb3_pearl.zoo.budget import budget_hyperparams
 from sb3_pearl.zoo.flags import DEFAULT_CHECKPOINT_MINUTES, PROJECT_FLAGS_HELP, parse_project_flags, resume_buffer_path
 from sb3_pearl.zoo.interruptions import InterruptibleExperimentManager, SetupInterrupted
-from sb3_pearl.zoo.meta_testing import SHORT_RUN_FRACTION, ZOO_META_TEST_DEFAULTS, MetaTestExperimentManager
+from sb3_pearl.zoo.meta_testing import (
+    SHORT_RUN_FRACTION,
+    ZOO_META_TEST_DEFAULTS,
+    MetaTestExperimentManager,
+    meta_test_dict,
+)
 from sb3_pearl.zoo.model_checks import check_model_env, check_model_spaces, check_saved_model_family
 from sb3_pearl.zoo.rl_zoo3_coupling import ALGOS, get_latest_run_id, run_zoo_train
-from sb3_pearl.zoo.safe_config import load_run_yaml, parse_dict_string
+from sb3_pearl.zoo.safe_config import load_run_yaml
 from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, exit_on_usage_error
 
 # What a --resume may set otherwise than the run did: the env steps to run up to, the evaluation settings.
@@ -401,30 +406,6 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
         """After the save: the final meta-test of an algorithm with the adaptation API (Ctrl-C / SIGTERM skip it)."""
         if self.adaptive:
             self.final_meta_test(model)
-
-
-def meta_test_dict(value: Any, where: str) -> dict[str, Any]:
-    """
-    The zoo key ``meta_test`` as a dict: None is empty, a string is parsed without ``eval``
-    (:func:`~sb3_pearl.zoo.safe_config.parse_dict_string`); anything else than a dict of the known keys is a
-    :class:`~sb3_pearl.zoo.usage.UsageError`.
-
-    :param value: the key's value (YAML entry, budget preset or ``-params``)
-    :param where: where it was given, for the message
-    :return: the dict (a copy)
-    """
-    if value is None:
-        return {}
-    if isinstance(value, str):  # the zoo's convention for dict values given as strings, parsed without eval()
-        try:
-            value = parse_dict_string(value, "meta_test")
-        except ValueError as error:
-            raise UsageError(f"{error} (in {where})") from None
-    if not isinstance(value, dict) or set(value) - set(ZOO_META_TEST_DEFAULTS):
-        raise UsageError(
-            f"meta_test must be a dict with keys among {sorted(ZOO_META_TEST_DEFAULTS)}, got {value!r} (in {where})"
-        )
-    return dict(value)
 
 
 def env_kwargs_error(env_id: str, error: TypeError) -> str:

@@ -20,6 +20,7 @@ import functools
 import os
 from typing import Any
 
+import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import CheckpointCallback, ProgressBarCallback
 
@@ -35,12 +36,37 @@ from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.evaluation.progress import TrainingProgressCallback
 from sb3_pearl.zoo.budget import faster_option
 from sb3_pearl.zoo.rl_zoo3_coupling import ExperimentManager, trial_eval_callback_replaced
-from sb3_pearl.zoo.usage import program_name
+from sb3_pearl.zoo.safe_config import load_run_yaml, parse_dict_string
+from sb3_pearl.zoo.usage import UsageError, program_name
 
 # The zoo key `meta_test`: the settings of every meta-test plus the eval seed of its tasks (evaluation/held_out.py).
 ZOO_META_TEST_DEFAULTS: dict[str, Any] = {**META_TEST_DEFAULTS, "eval_seed": DEFAULT_EVAL_SEED}
 SHORT_RUN_FRACTION = 10  # -n below 1 / SHORT_RUN_FRACTION of the entry's n_timesteps is a short (smoke) run ...
 SHORT_RUN_META_TEST_TASKS = 5  # ... whose final meta-test draws at most this many held-out tasks, unless meta_test says
+
+
+def meta_test_dict(value: Any, where: str) -> dict[str, Any]:
+    """
+    The zoo key ``meta_test`` as a dict: None is empty, a string is parsed without ``eval``
+    (:func:`~sb3_pearl.zoo.safe_config.parse_dict_string`); anything else than a dict of the known keys is a
+    :class:`~sb3_pearl.zoo.usage.UsageError`.
+
+    :param value: the key's value (YAML entry, budget preset or ``-params``)
+    :param where: where it was given, for the message
+    :return: the dict (a copy)
+    """
+    if value is None:
+        return {}
+    if isinstance(value, str):  # the zoo's convention for dict values given as strings, parsed without eval()
+        try:
+            value = parse_dict_string(value, "meta_test")
+        except ValueError as error:
+            raise UsageError(f"{error} (in {where})") from None
+    if not isinstance(value, dict) or set(value) - set(ZOO_META_TEST_DEFAULTS):
+        raise UsageError(
+            f"meta_test must be a dict with keys among {sorted(ZOO_META_TEST_DEFAULTS)}, got {value!r} (in {where})"
+        )
+    return dict(value)
 
 
 class MetaTestExperimentManager(ExperimentManager):
@@ -115,11 +141,43 @@ class MetaTestExperimentManager(ExperimentManager):
                     eval_seed=self.validation_seed,  # best_model.zip is never chosen on the final meta-test's tasks
                     best_model_save_path=self.save_path,
                     log_path=self.save_path,
-                    # --resume: the cut run's evaluations up to the checkpoint, and its best model, continue here
-                    resumes=os.path.dirname(self.trained_agent) if getattr(self, "resume", False) else None,
+                    resumes=self._evaluations_to_continue(),
                     verbose=self.verbose,
                 )
             )
+
+    def _evaluations_to_continue(self) -> str | None:
+        """
+        ``--resume``: the cut run's folder, whose evaluations (``meta_test_history.csv``, ``best_model.zip``) this run
+        continues (:meth:`~sb3_pearl.evaluation.callbacks.MetaTestCallback.continue_history`) when they were made as
+        this run's are: the same ``meta_test`` settings of those evaluations (``n_adapt``, ``n_repeats``,
+        ``deterministic``, ``eval_seed``; defaults resolved), ``--eval-episodes`` and env kwargs of the evaluation
+        env. A resume may change those; its evaluations then start anew. None: not a resume, or other evaluations.
+        """
+        if not getattr(self, "resume", False):
+            return None
+        folder = os.path.dirname(self.trained_agent)
+        params = os.path.join(folder, str(self.env_name))
+        try:
+            args = dict(load_run_yaml(os.path.join(params, "args.yml")) or {})
+            config = dict(load_run_yaml(os.path.join(params, "config.yml")) or {})
+            settings = {**ZOO_META_TEST_DEFAULTS, **meta_test_dict(config.get("meta_test"), "config.yml")}
+        except (OSError, ValueError, UsageError, yaml.YAMLError):
+            return None  # no run folder beside the checkpoint (a zip of its own), or one that cannot be read
+        evaluated_in = args.get("eval_env_kwargs") or args.get("env_kwargs") or {}  # rl_zoo3's eval env kwargs
+        evaluation = ("n_adapt", "n_repeats", "deterministic", "eval_seed")  # what the --eval-freq meta-tests use
+        same = (
+            all(settings[key] == self.meta_test_kwargs[key] for key in evaluation)
+            and args.get("eval_episodes") == self.n_eval_episodes
+            and dict(evaluated_in) == dict(self.eval_env_kwargs or {})
+        )
+        if not same:
+            print(
+                f"Note: {folder} evaluated with other meta-test settings, --eval-episodes or env kwargs: this run's "
+                "meta_test_history.csv and best_model.zip start anew"
+            )
+            return None
+        return folder
 
     def hyperparameters_optimization(self) -> None:
         if not self.adaptive:
