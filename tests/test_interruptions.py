@@ -359,6 +359,23 @@ def test_exception_during_training_saves_the_model_and_reraises(tmp_path: Path, 
 SIGNAL_ENV = "SignalSafePointGoalMeta-v0"
 
 
+def _copy_zip_data(source: Path, target: Path, **changes: Any) -> None:
+    """Copy a model zip with entries of its ``data`` changed (None: removed), as another version would have written it."""
+    with zipfile.ZipFile(source) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(entries["data"])
+    for key, value in changes.items():
+        assert key in data, key
+        if value is None:
+            del data[key]
+        else:
+            data[key] = value
+    entries["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(target, "w") as archive:
+        for name, content in entries.items():
+            archive.writestr(name, content)
+
+
 def _train_signal_env(tmp_path: Path, folder: Path, *extra: str, check: bool = True) -> Completed:
     conf = tmp_path / "conf.yml"  # iteration 0 = 4 x 30 = 120 steps, then 5 x (30 + 30) = 300
     conf.write_text(yaml.safe_dump({SIGNAL_ENV: {**TINY_ZOO, "n_timesteps": 420, "meta_test": "dict(n_adapt=0)"}}))
@@ -410,7 +427,14 @@ def test_a_resume_with_other_hyperparameters_is_refused(tmp_path: Path) -> None:
     assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0, refused.stderr[-2000:]
     assert f"--resume {model}: the hyperparameters differ from the run's (" in refused.stderr
     assert f"batch_size: {TINY_ZOO['batch_size']!r} in the run, 8 now" in refused.stderr
-    assert "gamma: not set (default 0.99) in the run, 0.9 now" in refused.stderr
+    assert "gamma: not set (the model's 0.99) in the run, 0.9 now" in refused.stderr
+    # a run trained under another default (its zip holds gamma 0.95, its config.yml no gamma): the default is no proof
+    older = model.parent / "older_default.zip"
+    _copy_zip_data(model, older, gamma=0.95)
+    refused = _train_signal_env(
+        tmp_path, logs, "--resume", str(older), "--resume-without-buffer", "-params", "gamma:0.99", check=False
+    )
+    assert refused.returncode == 2 and "gamma: not set (the model's 0.95) in the run, 0.99 now" in refused.stderr
     # a longer budget is allowed, and so is a key the run did not set given at its default (an entry that gained it)
     resumed = _train_signal_env(tmp_path, logs, "--resume", str(model), "-n", "480", "-params", "gamma:0.99")
     assert "Resuming at 200 timesteps: 280 to go" in resumed.stdout
@@ -558,17 +582,10 @@ def test_a_model_saved_before_vec_env_steps_were_counted_loads_with_its_env_step
     the VecEnv steps since that resume and a second resume put the callbacks off the grid."""
     model = _make(tiny_kwargs)
     model.learn(150)
-    path = tmp_path / "old.zip"
-    model.save(path)
-    with zipfile.ZipFile(path) as archive:
-        entries = {name: archive.read(name) for name in archive.namelist()}
-    data = json.loads(entries["data"])
-    assert data.pop("num_vec_env_steps") == model.num_timesteps  # what the older version did not write
-    entries["data"] = json.dumps(data).encode()
-    with zipfile.ZipFile(path, "w") as archive:
-        for name, content in entries.items():
-            archive.writestr(name, content)
-    loaded = type(model).load(path, env=model.get_env())
+    model.save(tmp_path / "new.zip")
+    assert PEARLPlus.load(tmp_path / "new.zip").num_vec_env_steps == model.num_timesteps
+    _copy_zip_data(tmp_path / "new.zip", tmp_path / "old.zip", num_vec_env_steps=None)  # what the older version wrote
+    loaded = type(model).load(tmp_path / "old.zip", env=model.get_env())
     assert loaded.num_vec_env_steps == model.num_timesteps  # one env
     loaded.learn(100, reset_num_timesteps=False)
     assert loaded.num_vec_env_steps == loaded.num_timesteps > model.num_timesteps

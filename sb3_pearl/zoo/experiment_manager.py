@@ -48,7 +48,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_pearl.budgets import model_kwargs
 from sb3_pearl.common.adaptation import has_adaptation_api
 from sb3_pearl.common.checks import check_learning_rate
-from sb3_pearl.common.persistence import IncompleteReplayBufferError
+from sb3_pearl.common.persistence import IncompleteReplayBufferError, read_model_data
 from sb3_pearl.common.threads import mark_num_threads_explicit, num_threads_flag
 from sb3_pearl.config import HYPERPARAMS_DIR
 from sb3_pearl.evaluation.callbacks import checkpoint_replay_buffer_path
@@ -72,6 +72,10 @@ from sb3_pearl.zoo.usage import CheckedStoreDict, UsageError, exit_on_usage_erro
 
 # What a --resume may set otherwise than the run did: the env steps to run up to, the evaluation settings.
 RESUME_MAY_CHANGE = frozenset({"n_timesteps", "meta_test"})
+
+# Constructor arguments a model saves resolved, not as given ("auto" -> -dim(A), None -> the env's step limit): a resume
+# compares one set on one side only with the constructor's default, not with the saved value.
+SAVED_RESOLVED = frozenset({"target_entropy", "max_episode_steps"})
 
 # Keys the zoo reads itself (rl_zoo3 ExperimentManager._preprocess_*), never constructor kwargs.
 ZOO_SPECIAL_KEYS = frozenset(
@@ -325,21 +329,27 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             return
         saved, current = dict(load_run_yaml(config) or {}), self.run_hyperparams
         missing = object()
-        # A constructor argument not set on one side is its default there: a key added to the YAML entry since the run
-        # (at the value the run used) is no change.
-        defaults = {
-            name: parameter.default
-            for name, parameter in constructor_parameters(ALGOS[self.algo]).items()
-            if parameter.default is not inspect.Parameter.empty
-        }
+        # A constructor argument not set on one side is what the run used: the checkpoint's own value where its zip
+        # holds it as a plain number or string, else the constructor's default. So a key added to the YAML entry since
+        # the run, at the value the run used, is no change, and one at a default changed since is refused.
+        try:
+            held = read_model_data(self.trained_agent)
+        except (OSError, ValueError):
+            held = {}  # a damaged zip: load() says so next
+        used: dict[str, Any] = {}
+        for name, parameter in constructor_parameters(ALGOS[self.algo]).items():
+            if (name not in held or name in SAVED_RESOLVED) and parameter.default is not inspect.Parameter.empty:
+                used[name] = parameter.default
+            elif isinstance(held.get(name), (bool, int, float, str)):
+                used[name] = held[name]  # (a serialised object is not compared: a key of it set on one side differs)
 
         def value(settings: dict[str, Any], key: str) -> Any:
-            return settings.get(key, defaults.get(key, missing))
+            return settings.get(key, used.get(key, missing))
 
         def shown(settings: dict[str, Any], key: str) -> str:
             if key in settings:
                 return repr(settings[key])
-            return "not set" if key not in defaults else f"not set (default {defaults[key]!r})"
+            return "not set" if key not in used else f"not set (the model's {used[key]!r})"
 
         changed = [
             f"{key}: {shown(saved, key)} in the run, {shown(current, key)} now"
@@ -350,7 +360,7 @@ class MetaExperimentManager(InterruptibleExperimentManager, MetaTestExperimentMa
             raise UsageError(
                 f"--resume {self.trained_agent}: the hyperparameters differ from the run's ({config}): "
                 f"{'; '.join(changed)}. A resume continues the run as it was: give the run's settings (its YAML entry, "
-                "--budget and -params; a key not set in the run is removed from the entry or given its default), "
+                "--budget and -params; a key not set in the run is removed from the entry or given the model's value), "
                 "or train a new run with -i to continue from the model with new ones"
             )
 
