@@ -465,6 +465,21 @@ def test_a_resumed_run_evaluates_and_checkpoints_on_the_uninterrupted_runs_grid(
     assert _evaluated_timesteps(logs / "pearlplus" / f"{SIGNAL_ENV}_3") == [240, 360]
 
 
+def test_a_resume_with_nothing_to_train_still_continues_the_runs_evaluations(tmp_path: Path) -> None:
+    """Guards against: a resume of a finished run (0 env steps to go) skipped learn(), where the evaluation callback
+    carries the cut run's history and best model, so its folder had neither."""
+    faulty_envs.send_signals({})
+    logs = tmp_path / "logs"
+    _train_signal_env(tmp_path, logs, "--eval-freq", "120", "--save-replay-buffer")
+    done = logs / "pearlplus" / f"{SIGNAL_ENV}_1"
+    resumed = _train_signal_env(tmp_path, logs, "--eval-freq", "120", "--resume", str(done / f"{SIGNAL_ENV}.zip"))
+    assert "Resuming at 420 timesteps: 0 to go" in resumed.stdout
+    again = logs / "pearlplus" / f"{SIGNAL_ENV}_2"
+    assert _evaluated_timesteps(again) == _evaluated_timesteps(done) == [120, 240, 360]
+    assert (again / "best_model.zip").read_bytes() == (done / "best_model.zip").read_bytes()
+    assert (again / f"{SIGNAL_ENV}.zip").is_file() and (again / "meta_test.json").is_file()  # saved, meta-tested
+
+
 def _evaluated_timesteps(run: Path) -> list[int]:
     with open(run / "meta_test_history.csv", newline="") as file:
         return sorted({int(row["timesteps"]) for row in csv.DictReader(file)})

@@ -39,6 +39,7 @@ from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 
 from sb3_pearl.common.atomic import atomic_write
 from sb3_pearl.common.callbacks import StopOnSignalCallback, StopRequested
+from sb3_pearl.evaluation.callbacks import MetaTestCallback
 from sb3_pearl.zoo.rl_zoo3_coupling import ExperimentManager
 from sb3_pearl.zoo.usage import program_name
 
@@ -164,13 +165,18 @@ class InterruptibleExperimentManager(ExperimentManager):
         pending = int(getattr(model, "_pending_gradient_steps", 0))
         if pending > 0:
             print(f"First the {pending:,} gradient steps of the iteration the stop interrupted", flush=True)
+        learning = remaining > 0 or pending > 0
         try:
-            if remaining > 0 or pending > 0:
+            if learning:
                 model.learn(max(remaining, 0), reset_num_timesteps=False, **kwargs)
+            else:  # nothing to train: the cut run's evaluations still continue in this run's folder
+                for callback in self.callbacks:
+                    if isinstance(callback, MetaTestCallback):
+                        callback.init_callback(model)
         except KeyboardInterrupt:
             pass  # as rl_zoo3: the model is saved by save_trained_model
         finally:
-            if self.callbacks:
+            if self.callbacks and learning:  # (callbacks that learn() never started have nothing to end)
                 self.callbacks[0].on_training_end()
             try:
                 assert model.env is not None
