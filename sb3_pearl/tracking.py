@@ -161,27 +161,59 @@ def velocity_tracking(
     }
 
 
+def harness_run(run: str | Path) -> tuple[Path, dict[str, Any]]:
+    """
+    A finished harness run of a velocity family, checked before any rollout: its folder and ``result.json`` record.
+
+    :param run: ``results/<exp>/<family>/<variant>/seed<N>/``
+    :return: the folder and its record
+    :raises TrackingError: not such a folder (a train.py run folder, a model zip, ...), or not a velocity family
+    """
+    folder = Path(run)
+    if not (folder / "result.json").is_file() or not (folder / "model.zip").is_file():
+        what = "a file" if folder.is_file() else ("no result.json and model.zip in it" if folder.is_dir() else "missing")
+        raise TrackingError(
+            f"{what}: tracking reruns the competence meta-test a finished harness run recorded, so it takes such a run's "
+            "folder (results/<exp>/<family>/<variant>/seed<N>/ with result.json and model.zip); for a train.py run or a "
+            "model zip, enjoy.py shows the velocity error of its meta-test"
+        )
+    record = json.loads((folder / "result.json").read_text())
+    if not (record.get("competence") or {}).get("settings") or "eval_seed" not in record:
+        raise TrackingError(f"{folder}/result.json has no competence settings or eval_seed: not a finished harness run")
+    criteria = (record.get("competence") or {}).get("criteria") or []
+    if not any(criterion.get("key") == REWARD_KEY for criterion in criteria):
+        family = ((record.get("spec") or {}).get("family") or {}).get("env_id", "its family")
+        raise TrackingError(
+            f"{family} is not a velocity family (its competence is not the per-step velocity error, {REWARD_KEY}): "
+            "tracking splits that error; Walker2dVelMeta-v0, HalfCheetahVelMeta-v0 and the Ant velocity families have it"
+        )
+    return folder, record
+
+
 def rerun_competence(run: str | Path, n_tasks: int | None = None) -> MetaTestResult:
     """
     The competence meta-test of a harness run folder again, with the velocity trace.
 
     :param run: ``results/<exp>/<family>/<variant>/seed<N>/`` with ``result.json`` (that holds a competence record) and
-        ``model.zip``
+        ``model.zip``, of any algorithm of the project (its class from the record's variant)
     :param n_tasks: training tasks (None: the number the competence check used)
     :return: the meta-test
     """
-    from sb3_pearl.diagnose import find_run, load_model  # the run-folder layout and the model class, as ``diagnose``
+    from sb3_pearl.diagnose import find_run, load_model  # the run-folder layout, as ``diagnose``
+    from sb3_pearl.registry import algorithm_class
 
-    folder = Path(run)
+    folder, record = harness_run(run)
     model_path, env_id, env_kwargs = find_run(folder)
-    record = json.loads((folder / "result.json").read_text())
-    settings = (record.get("competence") or {}).get("settings")
-    if not settings or "eval_seed" not in record:
-        raise TrackingError(f"{folder}/result.json has no competence settings or eval_seed: not a finished harness run")
+    settings = record["competence"]["settings"]
+    algo = ((record.get("spec") or {}).get("variant") or {}).get("algo")
     env = gym.make(env_id, **env_kwargs)
-    model = load_model(model_path, env, device=str(record.get("device", "cpu")))  # where its competence was measured
-    tasks = list(model.train_tasks)[: int(n_tasks or settings["n_tasks"])]
+    device = str(record.get("device", "cpu"))  # where its competence was measured
     try:
+        if algo is None:  # a record without its variant: a PEARL / PEARL+ run, as diagnose loads it
+            model: Any = load_model(model_path, env, device=device)
+        else:
+            model = algorithm_class(algo).load(model_path, env=env, device=device)  # type: ignore[attr-defined]
+        tasks = list(model.train_tasks)[: int(n_tasks or settings["n_tasks"])]
         return run_meta_test(model, env, tasks, settings, int(record["eval_seed"]), [VELOCITY_KEY, REWARD_KEY])
     finally:
         env.close()
@@ -298,6 +330,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
     results: dict[str, dict[str, Any]] = {}
     for run in args.runs:
         try:
+            harness_run(run)  # before any rollout: a folder of another layout, or a family without velocity, fails here
             horizon = gym.spec(find_run(run)[1]).max_episode_steps  # the parts divide the episode, not the survivors
             results[run] = velocity_tracking(rerun_competence(run, args.n_tasks), n_parts=args.parts, horizon=horizon)
         except (RunFolderError, TrackingError) as error:

@@ -11,7 +11,7 @@ import pytest
 from sb3_pearl import PEARLPlus
 from sb3_pearl.evaluation.meta_test import MetaTestResult
 from sb3_pearl.tracking import main, rerun_competence, velocity_tracking
-from tests.conftest import TINY
+from tests.conftest import ENV_ID, TINY, tiny_finetune
 
 
 def _result() -> MetaTestResult:
@@ -83,7 +83,8 @@ def test_the_command_reruns_the_competence_meta_test(tmp_path: Path, capsys: pyt
     family = {"name": "cheetah-vel", "env_id": "HalfCheetahVelMeta-v0", "env_kwargs": {}}
     spec = {"experiment": "exp", "family": family, "variant": {"name": "pearlplus", "algo": "pearlplus"}}
     settings = {"n_tasks": 2, "n_repeats": 1, "n_adapt": 1, "deterministic": True}
-    record = {"spec": spec, "eval_seed": 7, "competence": {"settings": settings}}
+    criteria = [{"key": "reward_forward", "value": None}]  # the family's criterion, its value not recorded
+    record = {"spec": spec, "eval_seed": 7, "competence": {"settings": settings, "criteria": criteria}}
     (run / "result.json").write_text(json.dumps(record))
     plot = tmp_path / "tracking.png"
     results = main([str(run), "--plot", str(plot), "--bar", "0.3"])
@@ -113,3 +114,41 @@ def test_the_command_reruns_the_competence_meta_test(tmp_path: Path, capsys: pyt
     with pytest.raises(SystemExit):
         main([str(run)])
     assert "no competence settings or eval_seed" in capsys.readouterr().err
+
+
+def _write_run(run: Path, model: object, algo: str, env_id: str, criterion_key: str = "reward_forward") -> None:
+    run.mkdir(parents=True)
+    model.save(run / "model.zip")  # type: ignore[attr-defined]
+    spec = {"family": {"name": "f", "env_id": env_id, "env_kwargs": {}}, "variant": {"name": algo, "algo": algo}}
+    settings = {"n_tasks": 1, "n_repeats": 1, "n_adapt": 1, "deterministic": True}
+    competence = {"settings": settings, "criteria": [{"key": criterion_key, "value": None}]}
+    (run / "result.json").write_text(json.dumps({"spec": spec, "eval_seed": 7, "competence": competence}))
+
+
+def test_the_command_takes_a_run_of_any_algorithm_and_refuses_other_input_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Guards against: tracking refused every run not of PEARL / PEARL+ ("the diagnostics need one"), and a train.py
+    run folder or a model zip ended in a FileNotFoundError / NotADirectoryError traceback; a run of a family without a
+    velocity (SafePoint, Highway-Merge) was refused only after its whole competence meta-test had run."""
+    finetune = tiny_finetune("HalfCheetahVelMeta-v0", adapt_gradient_steps=2)
+    finetune.learn(20)
+    run = tmp_path / "finetune" / "seed0"
+    _write_run(run, finetune, "finetune", "HalfCheetahVelMeta-v0")
+    tracking = main([str(run), "--json"])[str(run)]
+    assert tracking["n_trajectories"] == 1 and tracking["tasks"][0]["target"] == finetune.train_tasks[0]["velocity"]
+    capsys.readouterr()
+
+    other = tmp_path / "safe" / "seed0"
+    _write_run(other, tiny_finetune(), "finetune", ENV_ID, criterion_key="distance")
+    zoo_folder = tmp_path / "logs" / "finetune" / "SafePointGoalMeta-v0_1"
+    zoo_folder.mkdir(parents=True)
+    for given, said in (
+        (other, "is not a velocity family"),
+        (run / "model.zip", "a file: tracking reruns the competence meta-test a finished harness run recorded"),
+        (zoo_folder, "no result.json and model.zip in it: tracking reruns"),
+    ):
+        with pytest.raises(SystemExit):
+            main([str(given)])
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err, err
