@@ -293,6 +293,10 @@ def test_enjoy_replays_a_committed_harness_run(tmp_path: Path, capsys: pytest.Ca
         (["--algo", "pearl", *args], "is a pearlplus model: pass --algo pearlplus"),
         (["--algo", "pearlplus", "--env", "PointGoalMeta-v0", *args[2:]], "not on PointGoalMeta-v0: pass --env " + ENV_ID),
         (["--algo", "pearlplus", *args[:2], "--run", str(tmp_path), "--no-render"], "not a finished harness run"),
+        (["--algo", "pearlplus", *args[:2], "--run", str(folder / "model.zip")], "a file; pass the run's folder"),
+        (["--algo", "pearlplus", *args, "--load-best"], "--load-best choose a model of a train.py run folder instead"),
+        (["--algo", "pearlplus", *args, "-f", "logs2", "--exp-id", "2"], "-f, --exp-id choose a model of a train.py"),
+        (["--algo", "pearlplus", *args[:2], "-f", str(folder)], f"replay it with --run {folder}"),
     ):
         with pytest.raises(SystemExit) as exit_info:
             enjoy(argv)
@@ -568,3 +572,18 @@ def test_budget_preset_policy_kwargs_reach_the_model_without_eval(tmp_path: Path
     assert any(isinstance(module, nn.Tanh) for module in model.policy.modules())
     saved = dict(load_run_yaml(run_dir / env_id / "config.yml"))  # the safe loader: a class would be refused
     assert dict(saved["policy_kwargs"]) == {"net_arch": [16, 16], "activation_fn": "tanh"}
+
+
+def test_enjoy_replays_a_run_in_its_evaluation_env(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Guards against: enjoy built its env from args.yml's env_kwargs only, so a run trained with --eval-env-kwargs
+    (whose meta-tests ran in that env) was replayed on other tasks than its meta_test.json's."""
+    train(tmp_path, "pearlplus", "--eval-env-kwargs", "goal_radius:1.5")
+    run_dir = tmp_path / "pearlplus" / f"{ENV_ID}_1"
+    recorded = json.loads((run_dir / "meta_test.json").read_text())
+    assert all(math.isclose(math.hypot(*task["goal"]), 1.5) for task in recorded["tasks"])  # the evaluation env's
+    result = enjoy_main(
+        ["--algo", "pearlplus", "--env", ENV_ID, "-f", str(tmp_path), "--no-render", "--n-tasks", "3", "--n-adapt", "2"]
+    )
+    assert "ran in its evaluation env (--eval-env-kwargs {'goal_radius': 1.5})" in capsys.readouterr().out
+    assert [list(task["goal"]) for task in result.tasks] == [list(task["goal"]) for task in recorded["tasks"]]
+    assert result.summary == recorded["summary"]

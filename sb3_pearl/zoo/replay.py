@@ -104,21 +104,39 @@ def enjoy_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# The flags that choose the model of a train.py run folder (rl_zoo3's): attribute and default.
+ZOO_MODEL_FLAGS = {
+    "-f": ("folder", "logs"),
+    "--exp-id": ("exp_id", 0),
+    "--load-best": ("load_best", False),
+    "--load-checkpoint": ("load_checkpoint", None),
+    "--load-last-checkpoint": ("load_last_checkpoint", False),
+}
+
+
 def _render_modes(env_id: str) -> list[str]:
     spec = gym.spec(env_id)
     creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
     return list(getattr(creator, "metadata", {}).get("render_modes", []))
 
 
-def _saved_env_kwargs(log_path: str, env_name: str, hyperparams: dict[str, Any]) -> dict[str, Any]:
-    """env kwargs of the training run: the config's, overridden by the command line's (rl_zoo3's enjoy rule)."""
+def _saved_env_kwargs(log_path: str, env_name: str, hyperparams: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """
+    env kwargs of the training run: the config's, overridden by the command line's (rl_zoo3's enjoy rule); and those of
+    its evaluation env (``--eval-env-kwargs``, else the same), where train.py's meta-tests ran.
+
+    :return: the training env's kwargs, the evaluation env's
+    """
     env_kwargs: dict[str, Any] = dict(hyperparams.pop("env_kwargs", None) or {})
+    eval_env_kwargs: dict[str, Any] | None = None
     args_path = os.path.join(log_path, env_name, "args.yml")
     if os.path.isfile(args_path):
         loaded = load_run_yaml(args_path) or {}
         if loaded.get("env_kwargs") is not None:
             env_kwargs = dict(loaded["env_kwargs"])
-    return env_kwargs
+        if loaded.get("eval_env_kwargs"):
+            eval_env_kwargs = dict(loaded["eval_env_kwargs"])
+    return env_kwargs, dict(env_kwargs if eval_env_kwargs is None else eval_env_kwargs)
 
 
 def _harness_run(folder: str, algo: str, env_id: str) -> tuple[dict[str, Any], int]:
@@ -132,6 +150,8 @@ def _harness_run(folder: str, algo: str, env_id: str) -> tuple[dict[str, Any], i
     :return: the family's env kwargs and the experiment's eval seed
     """
     result_path, model_path = os.path.join(folder, "result.json"), os.path.join(folder, "model.zip")
+    if os.path.isfile(folder):
+        raise UsageError(f"--run {folder}: a file; pass the run's folder (results/<experiment>/<family>/<variant>/seed<N>)")
     if not (os.path.isfile(result_path) and os.path.isfile(model_path)):
         raise UsageError(f"--run {folder}: not a finished harness run (expected model.zip and result.json in it)")
     try:
@@ -198,6 +218,9 @@ def find_model(args: argparse.Namespace, env_name: EnvironmentName) -> tuple[str
             _, model_path, log_path = get_model_path(number, args.folder, args.algo, env_name, *choice)
         except (AssertionError, ValueError) as error:
             if number == candidates[-1]:
+                if os.path.isfile(os.path.join(args.folder, "result.json")):  # -f given a harness run folder
+                    hint = f"{args.folder} is a harness run folder; replay it with --run {args.folder}"
+                    raise UsageError(f"{error}: {hint}") from None
                 raise UsageError(str(error) if not skipped else f"{error}; no newer run folder holds one either") from None
             skipped.append(f"{env_name}_{number}")
             continue
@@ -218,6 +241,12 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     env_id = env_name.gym_id
     check_env_id(env_id)
     if args.run is not None:  # a harness run folder: model.zip + result.json
+        chosen = [flag for flag, given in ZOO_MODEL_FLAGS.items() if getattr(args, given[0]) != given[1]]
+        if chosen:
+            raise UsageError(
+                f"--run loads the run folder's model.zip: {', '.join(chosen)} choose a model of a train.py run folder "
+                "instead; give one or the other"
+            )
         model_path, log_path = os.path.join(args.run, "model.zip"), args.run
         run_env_kwargs, run_eval_seed = _harness_run(args.run, args.algo, env_id)
     else:
@@ -236,15 +265,16 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
 
     if args.run is not None:
         hyperparams: dict[str, Any] = {}  # the harness never normalises nor wraps
-        maybe_stats_path, env_kwargs = None, run_env_kwargs
+        maybe_stats_path, training_kwargs, env_kwargs = None, dict(run_env_kwargs), dict(run_env_kwargs)
     else:
         try:  # the run folder's YAML, read without running code (sb3_pearl.zoo.safe_config)
             hyperparams, maybe_stats_path = get_saved_hyperparams(os.path.join(log_path, env_name), test_mode=True)
-            env_kwargs = _saved_env_kwargs(log_path, env_name, hyperparams)
+            training_kwargs, env_kwargs = _saved_env_kwargs(log_path, env_name, hyperparams)
         except UnsafeConfigError as error:
             raise UsageError(str(error)) from None
-    shifted = bool(args.env_kwargs)
-    training_kwargs = dict(env_kwargs)  # before --env-kwargs: the distribution the model was trained in
+        if env_kwargs != training_kwargs:
+            print(f"The run's meta-tests ran in its evaluation env (--eval-env-kwargs {env_kwargs}): so do these rollouts")
+    shifted = bool(args.env_kwargs)  # (training_kwargs: the distribution the model was trained in, for the oracle)
     if args.env_kwargs:
         env_kwargs.update(args.env_kwargs)
     render = not args.no_render
