@@ -292,6 +292,13 @@ def test_held_out_meta_test_is_the_protocol_with_common_random_numbers() -> None
     assert result.config["eval_seed"] == 5 and result.config["crn_seed"] == 5
     record = meta_test_record(result, wall_time_s=1.0)
     assert record["summary"] == json_value(direct.summary) and record["wall_time_s"] == 1.0
+    # settings left out take the defaults (n_repeats 1, ...); an unknown key or a value out of range is named
+    partial = held_out_meta_test(ScriptedModel(), GuessEnv(), {"n_adapt": 2, "n_tasks": 2}, eval_seed=5)
+    assert partial.config["n_repeats"] == 1 and len(partial.rows) == 2 * 3
+    refused = (({"n_adapt": 1, "bogus": 1}, r"unknown key\(s\) \['bogus'\]"), ({"n_repeats": 0}, "n_repeats must be"))
+    for bad, message in refused:
+        with pytest.raises(ValueError, match=message):
+            held_out_meta_test(ScriptedModel(), GuessEnv(), bad, eval_seed=5)
 
 
 def test_callback_logs_meta_test(tiny_kwargs: dict[str, Any], tmp_path: Any) -> None:

@@ -161,6 +161,16 @@ def test_save_load(algo: str, tmp_path: Path, tiny_kwargs: dict[str, Any]) -> No
     assert_same_buffers(model.replay_buffer, loaded.replay_buffer)
 
 
+def test_learn_after_a_load_without_env_says_what_to_do(tmp_path: Path, tiny_kwargs: dict[str, Any]) -> None:
+    """Guards against: FineTune.load(path).learn() ended in an AssertionError without a message (MAML too)."""
+    for model in (tiny_pearl(tiny_kwargs), tiny_finetune(), tiny_maml()):
+        name = type(model).__name__
+        model.save(tmp_path / name)
+        loaded = type(model).load(tmp_path / f"{name}.zip")
+        with pytest.raises(ValueError, match=rf"{name}.learn\(\): the model has no env .*set_env\(env\) first"):
+            loaded.learn(10)
+
+
 @pytest.mark.parametrize("algo", ALGOS)
 def test_save_load_to_file_objects(algo: str, tiny_kwargs: dict[str, Any]) -> None:
     """SB3's ``save`` / ``load`` and ``save_replay_buffer`` / ``load_replay_buffer`` also take open files (an

@@ -309,6 +309,11 @@ class MetaAlgorithm(BaseAlgorithm):
             raise ValueError(
                 f"{type(self).__name__}.learn(): total_timesteps must be >= 0 (env steps to train on), got {total_timesteps}"
             )
+        if self.env is None:  # before anything reads it (SB3 checks later, after the algorithm's own set-up)
+            raise ValueError(
+                f"{type(self).__name__}.learn(): the model has no env (loaded without one): "
+                f"{type(self).__name__}.load(path, env=env) or model.set_env(env) first"
+            )
         self._check_train_tasks()
         apply_default_num_threads(self.policy)  # the fastest count for these networks, unless the user chose one
         env_reset = reset_num_timesteps or self._last_obs is None  # SB3's condition for resetting the envs

@@ -170,13 +170,21 @@ def held_out_meta_test(
 
     :param model: a trained model with the adaptation API
     :param env: the evaluation env (the training ranges, or shifted ones)
-    :param settings: the meta-test settings
+    :param settings: some of ``n_adapt``, ``n_repeats``, ``n_tasks``, ``deterministic`` (the others from
+        :data:`META_TEST_DEFAULTS`; the zoo's ``eval_seed`` may be among them); another key, or a value out of its
+        range, is a ValueError that names it
     :param eval_seed: seed of the task draw, the resets and the common random numbers
     :param what: the run, for error messages
     :param kwargs: the other arguments of :func:`run_meta_test`
     :return: the result
     """
-    tasks = model_test_tasks(model, env, settings.get("n_tasks"), eval_seed, what)
+    known = {*META_TEST_DEFAULTS, "eval_seed"}
+    unknown = sorted(set(settings) - known)
+    if unknown:
+        raise ValueError(f"meta-test settings: unknown key(s) {unknown}; the settings are some of {sorted(known)}")
+    check_meta_test_settings(settings)
+    settings = {**META_TEST_DEFAULTS, **settings}
+    tasks = model_test_tasks(model, env, settings["n_tasks"], eval_seed, what)
     return run_meta_test(model, env, tasks, settings, eval_seed, **kwargs)
 
 
