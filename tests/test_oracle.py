@@ -278,6 +278,8 @@ def test_reproduce_velocity_measures_finished_runs_on_their_own_held_out_tasks(t
     before = (folder / "velocity_held_out.json").stat().st_mtime_ns
     assert reproduce_main(["velocity", "oracle", *args]) == 0
     assert (folder / "velocity_held_out.json").stat().st_mtime_ns == before
+    # a family that is not a velocity family (or a typo) is refused, not filtered out into "0 run(s) measured"
+    assert reproduce_main(["velocity", "oracle", "--family", "walker2d-vel-lng", "--results-dir", str(tmp_path)]) == 2
 
 
 def test_reproduce_measure_redoes_an_oracle_shift_standardised_over_the_shifted_tasks(tmp_path) -> None:

@@ -348,11 +348,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "velocity":
             import torch as th
 
-            from pearl_paper.reproduce.velocity import measure_experiments
+            from pearl_paper.reproduce.velocity import SPEED_BINS, measure_experiments
 
             th.set_num_threads(1)
             for name in args.experiments:
                 get_experiment(name)  # an unknown name fails here, with the known ones
+            others = sorted(set(args.family or ()) - set(SPEED_BINS))
+            if others:  # else filtered out in silence: "0 run(s) measured"
+                raise ValueError(f"--family {' '.join(others)}: not a velocity family; those are {sorted(SPEED_BINS)}")
             chosen = parse_seeds(args.seeds) if args.seeds is not None else None
             written = measure_experiments(args.results_dir, args.experiments, chosen, args.family, args.force)
             print(f"{len(written)} run(s) measured")
