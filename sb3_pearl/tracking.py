@@ -330,9 +330,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
     results: dict[str, dict[str, Any]] = {}
     for run in args.runs:
         try:
-            harness_run(run)  # before any rollout: a folder of another layout, or a family without velocity, fails here
+            rerun = rerun_competence(run, args.n_tasks)  # checks the folder and family first (harness_run)
             horizon = gym.spec(find_run(run)[1]).max_episode_steps  # the parts divide the episode, not the survivors
-            results[run] = velocity_tracking(rerun_competence(run, args.n_tasks), n_parts=args.parts, horizon=horizon)
+            results[run] = velocity_tracking(rerun, n_parts=args.parts, horizon=horizon)
         except (RunFolderError, TrackingError) as error:
             p.error(f"{run}: {error}")
         committed = committed_per_step_error(run) if args.n_tasks is None else None

@@ -104,13 +104,13 @@ def enjoy_parser() -> argparse.ArgumentParser:
     return parser
 
 
-# The flags that choose the model of a train.py run folder (rl_zoo3's): attribute and default.
+# The flags that choose the model of a train.py run folder (rl_zoo3's), by their attribute (defaults: the parser's).
 ZOO_MODEL_FLAGS = {
-    "-f": ("folder", "logs"),
-    "--exp-id": ("exp_id", 0),
-    "--load-best": ("load_best", False),
-    "--load-checkpoint": ("load_checkpoint", None),
-    "--load-last-checkpoint": ("load_last_checkpoint", False),
+    "-f": "folder",
+    "--exp-id": "exp_id",
+    "--load-best": "load_best",
+    "--load-checkpoint": "load_checkpoint",
+    "--load-last-checkpoint": "load_last_checkpoint",
 }
 
 
@@ -241,7 +241,8 @@ def _enjoy(args: argparse.Namespace) -> MetaTestResult:
     env_id = env_name.gym_id
     check_env_id(env_id)
     if args.run is not None:  # a harness run folder: model.zip + result.json
-        chosen = [flag for flag, given in ZOO_MODEL_FLAGS.items() if getattr(args, given[0]) != given[1]]
+        defaults = enjoy_parser()
+        chosen = [flag for flag, name in ZOO_MODEL_FLAGS.items() if getattr(args, name) != defaults.get_default(name)]
         if chosen:
             raise UsageError(
                 f"--run loads the run folder's model.zip: {', '.join(chosen)} choose a model of a train.py run folder "
